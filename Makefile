@@ -1,0 +1,40 @@
+# Set-up is part of every target: a venv in .venv, the project with its test extra, and Debian's EGL/Mesa.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+EGL_PACKAGES := libegl1 libgl1-mesa-dri libegl-mesa0
+STAMP := $(VENV)/.installed
+
+.PHONY: setup demo test bench clean system-deps
+
+setup: $(STAMP) system-deps
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[test,scenes]'
+	touch $(STAMP)
+
+# Mesa's EGL (llvmpipe) for headless GL: apt-get when root, otherwise say what to install.
+system-deps:
+	@if ! ldconfig -p | grep -q libEGL_mesa; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    echo "installing $(EGL_PACKAGES)"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(EGL_PACKAGES) >/dev/null; \
+	  else \
+	    echo "error: headless GL needs Debian packages $(EGL_PACKAGES); run: sudo apt-get install $(EGL_PACKAGES)"; \
+	    exit 1; \
+	  fi; \
+	fi
+
+demo: setup
+	$(BIN)/quadcast demo
+
+test: setup
+	$(BIN)/python -m pytest
+
+bench: setup
+	$(BIN)/quadcast bench render
+
+clean:
+	rm -rf $(VENV) out .pytest_cache .hypothesis

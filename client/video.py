@@ -1,0 +1,155 @@
+"""H.264 decoding of the server's colour atlas, one access unit at a time.
+
+:class:`AtlasDecoder` takes each Annex-B access unit as it arrives off the link
+and returns the decoded RGB atlas right away (the stream has no B-frames, so
+the decoder never holds a picture back).  Damaged input is an error, not a
+smeared picture: the decoder runs with FFmpeg's strict error detection and
+without slice threading, so error resilience can see missing or garbled
+macroblocks, and any access unit that fails or needs concealment raises
+:class:`VideoError`.
+
+After an error, or before the first IDR, the decoder waits for a keyframe:
+:attr:`AtlasDecoder.needs_keyframe` is True and non-IDR access units are
+dropped (``decode`` returns None) because they would predict from pictures the
+decoder does not have.  Every error resets the decoder to a fresh state, so
+nothing from the damaged stream carries over; decoding resumes at the next IDR
+access unit, which must carry its SPS and PPS in-band (as those of
+``server.video.AtlasEncoder`` do).
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from types import TracebackType
+
+import av
+import numpy as np
+
+__all__ = ["VideoError", "AtlasDecoder", "nal_unit_types"]
+
+_NAL_IDR_SLICE = 5
+_START_CODE_NAL_HEADER = re.compile(rb"\x00\x00\x01(.)", re.DOTALL)
+
+
+class VideoError(ValueError):
+    """An H.264 access unit could not be decoded (corrupt, truncated or not H.264)."""
+
+
+def nal_unit_types(access_unit: bytes) -> list[int]:
+    """NAL unit types (0..31) of the start-code-prefixed NAL units in ``access_unit``."""
+    return [header[0] & 0x1F for header in _START_CODE_NAL_HEADER.findall(access_unit)]
+
+
+def _new_codec() -> av.VideoCodecContext:
+    codec = av.CodecContext.create("h264", "r")
+    # One thread, no slice threading: FFmpeg's error resilience only flags
+    # concealed macroblocks when the picture is decoded by a single thread.
+    codec.thread_count = 1
+    codec.options = {"err_detect": "careful+explode"}
+    return codec
+
+
+class AtlasDecoder:
+    """Decoder for the H.264 atlas stream produced by ``server.video.AtlasEncoder``.
+
+    Call :meth:`decode` once per received access unit.
+    """
+
+    def __init__(self) -> None:
+        self._codec: av.VideoCodecContext | None = _new_codec()
+        self._needs_keyframe = True
+        self.decode_ms = 0.0
+        """Wall-clock time of the last :meth:`decode` call, in milliseconds."""
+
+    @property
+    def needs_keyframe(self) -> bool:
+        """True until an IDR has been decoded, and again after any decode error."""
+        return self._needs_keyframe
+
+    def decode(self, data: bytes) -> np.ndarray | None:
+        """Decode one Annex-B access unit.
+
+        Args:
+            data: exactly one H.264 access unit (bytes-like).
+
+        Returns:
+            The decoded atlas as a uint8 array (height, width, 3), RGB, top row
+            first; or None when the access unit yields no picture, including
+            non-IDR access units dropped while :attr:`needs_keyframe` is True.
+
+        Raises:
+            VideoError: the data is empty, not an Annex-B H.264 stream, or fails
+                to decode cleanly (truncated, corrupt, references missing).
+                The decoder then waits for the next IDR.
+            TypeError: ``data`` is not bytes-like.
+            RuntimeError: the decoder is closed.
+        """
+        start = time.perf_counter()
+        try:
+            return self._decode(data)
+        finally:
+            self.decode_ms = (time.perf_counter() - start) * 1000.0
+
+    def _decode(self, data: bytes) -> np.ndarray | None:
+        if self._codec is None:
+            raise RuntimeError("AtlasDecoder is closed")
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise TypeError(f"access unit must be bytes-like; got {type(data).__name__}")
+        data = bytes(data)
+        if not data:
+            # An empty packet would be taken as end-of-stream by FFmpeg.
+            raise self._fail("empty access unit (0 bytes)")
+        nal_types = nal_unit_types(data)
+        if not nal_types:
+            raise self._fail(
+                f"not an Annex-B H.264 access unit ({len(data)} bytes, no start code found)"
+            )
+        is_idr = _NAL_IDR_SLICE in nal_types
+        if self._needs_keyframe and not is_idr:
+            return None
+
+        try:
+            frames = self._codec.decode(av.Packet(data))
+        except Exception as exc:  # bad bytes must surface as VideoError only
+            raise self._fail(
+                f"undecodable H.264 access unit ({len(data)} bytes, "
+                f"NAL types {nal_types}): {exc}"
+            ) from exc
+        if not frames:
+            return None
+        frame = frames[-1]
+        if frame.is_corrupt:
+            raise self._fail(
+                f"H.264 access unit decoded with errors ({len(data)} bytes, "
+                f"NAL types {nal_types}): picture is truncated or corrupt"
+            )
+        try:
+            rgb = frame.to_ndarray(format="rgb24")
+        except Exception as exc:
+            raise self._fail(f"decoded picture could not be converted to RGB: {exc}") from exc
+        if is_idr:
+            self._needs_keyframe = False
+        return np.ascontiguousarray(rgb, dtype=np.uint8)
+
+    def _fail(self, message: str) -> VideoError:
+        """Drop decoder state, wait for the next IDR, and build the error to raise."""
+        self._needs_keyframe = True
+        if self._codec is not None:
+            self._codec = _new_codec()
+        return VideoError(message)
+
+    def close(self) -> None:
+        """Release the decoder; further :meth:`decode` calls raise RuntimeError."""
+        self._codec = None
+
+    def __enter__(self) -> AtlasDecoder:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()

@@ -1,0 +1,33 @@
+"""Sans-I/O wire formats of quadcast (numpy + zstandard only)."""
+
+from protocol.errors import ProtocolError
+from protocol.quads import (
+    FrameType,
+    LayerKind,
+    QuadFrame,
+    QuadFrameStats,
+    QuadLayer,
+    QuadSet,
+    decode_quad_frame,
+    encode_quad_frame,
+    pack_normals,
+    packed_size_bits_per_quad,
+    quad_frame_stats,
+    unpack_normals,
+)
+
+__all__ = [
+    "FrameType",
+    "LayerKind",
+    "ProtocolError",
+    "QuadFrame",
+    "QuadFrameStats",
+    "QuadLayer",
+    "QuadSet",
+    "decode_quad_frame",
+    "encode_quad_frame",
+    "pack_normals",
+    "packed_size_bits_per_quad",
+    "quad_frame_stats",
+    "unpack_normals",
+]

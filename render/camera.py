@@ -1,0 +1,202 @@
+"""Poses, frusta and cameras: the coordinate conventions every stage shares.
+
+World space is right-handed with +Y up. A camera looks down its local -Z with +Y up (OpenGL). A `Pose` is a
+position plus a unit quaternion (x, y, z, w order, as scipy.spatial.transform.Rotation uses). Matrices are numpy
+float64, row-major, acting on column vectors (``p_view = view @ p_world``); `gl_matrix` converts one for upload.
+Clip space is OpenGL's (z in [-1, 1]); depth-buffer values are in [0, 1].
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+DEFAULT_IPD_M = 0.063
+
+
+def _vec3(v, name: str) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected 3 finite numbers, got {v!r}")
+    return a
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid camera pose: world-space position (metres) and orientation (unit quaternion, xyzw)."""
+
+    position: np.ndarray
+    quat: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
+
+    def __post_init__(self):
+        object.__setattr__(self, "position", _vec3(self.position, "Pose.position"))
+        q = np.asarray(self.quat, dtype=np.float64).reshape(-1)
+        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+            raise ValueError(f"Pose.quat: expected a non-zero quaternion (x, y, z, w), got {self.quat!r}")
+        object.__setattr__(self, "quat", q / np.linalg.norm(q))
+
+    @classmethod
+    def from_euler(cls, position, pitch_deg: float, yaw_deg: float, roll_deg: float = 0.0) -> "Pose":
+        """QUASAR's trace convention: yaw about world Y, then pitch about the camera X, then roll."""
+        rot = Rotation.from_euler("YXZ", [yaw_deg, pitch_deg, roll_deg], degrees=True)
+        return cls(position, rot.as_quat())
+
+    @classmethod
+    def look_at(cls, eye, target, up=(0.0, 1.0, 0.0)) -> "Pose":
+        eye, target, up = _vec3(eye, "eye"), _vec3(target, "target"), _vec3(up, "up")
+        back = eye - target
+        if np.linalg.norm(back) < 1e-12:
+            raise ValueError("Pose.look_at: eye and target coincide")
+        z = back / np.linalg.norm(back)
+        x = np.cross(up, z)
+        if np.linalg.norm(x) < 1e-9:  # looking straight along up: pick any perpendicular
+            x = np.cross([1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 0.0, 1.0], z)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        return cls(eye, Rotation.from_matrix(np.stack([x, y, z], axis=1)).as_quat())
+
+    @property
+    def rotation(self) -> Rotation:
+        return Rotation.from_quat(self.quat)
+
+    @property
+    def forward(self) -> np.ndarray:
+        return self.rotation.apply([0.0, 0.0, -1.0])
+
+    def camera_to_world(self) -> np.ndarray:
+        m = np.eye(4)
+        m[:3, :3] = self.rotation.as_matrix()
+        m[:3, 3] = self.position
+        return m
+
+    def view_matrix(self) -> np.ndarray:
+        """World -> view transform."""
+        r = self.rotation.as_matrix()
+        m = np.eye(4)
+        m[:3, :3] = r.T
+        m[:3, 3] = -r.T @ self.position
+        return m
+
+    def offset_local(self, offset) -> "Pose":
+        """The same orientation, moved by `offset` expressed in the camera's own axes."""
+        return Pose(self.position + self.rotation.apply(_vec3(offset, "offset")), self.quat)
+
+    def stereo_eyes(self, ipd: float = DEFAULT_IPD_M) -> tuple["Pose", "Pose"]:
+        """(left, right) eye poses, each half the inter-pupillary distance from this (head) pose."""
+        if not ipd >= 0:
+            raise ValueError(f"ipd must be >= 0 metres, got {ipd}")
+        return self.offset_local([-ipd / 2, 0.0, 0.0]), self.offset_local([ipd / 2, 0.0, 0.0])
+
+    def distance_to(self, other: "Pose") -> float:
+        return float(np.linalg.norm(self.position - other.position))
+
+    def angle_to_deg(self, other: "Pose") -> float:
+        return float(np.degrees((self.rotation.inv() * other.rotation).magnitude()))
+
+
+@dataclass(frozen=True)
+class Frustum:
+    """A perspective frustum given by its extents on the near plane (glFrustum's l, r, b, t, n, f)."""
+
+    left: float
+    right: float
+    bottom: float
+    top: float
+    near: float = 0.1
+    far: float = 100.0
+
+    def __post_init__(self):
+        if not (0 < self.near < self.far):
+            raise ValueError(f"Frustum: need 0 < near < far, got near={self.near} far={self.far}")
+        if not (self.left < self.right and self.bottom < self.top):
+            raise ValueError(f"Frustum: empty extents l={self.left} r={self.right} b={self.bottom} t={self.top}")
+
+    @classmethod
+    def symmetric(cls, fovy_deg: float, aspect: float, near: float = 0.1, far: float = 100.0) -> "Frustum":
+        if not 0 < fovy_deg < 180:
+            raise ValueError(f"fovy must be in (0, 180) degrees, got {fovy_deg}")
+        if not aspect > 0:
+            raise ValueError(f"aspect must be > 0, got {aspect}")
+        t = near * np.tan(np.radians(fovy_deg) / 2)
+        return cls(-t * aspect, t * aspect, -t, t, near, far)
+
+    @property
+    def fovy_deg(self) -> float:
+        return float(np.degrees(np.arctan(self.top / self.near) - np.arctan(self.bottom / self.near)))
+
+    @property
+    def aspect(self) -> float:
+        return (self.right - self.left) / (self.top - self.bottom)
+
+    def projection_matrix(self) -> np.ndarray:
+        l, r, b, t, n, f = self.left, self.right, self.bottom, self.top, self.near, self.far
+        return np.array([
+            [2 * n / (r - l), 0, (r + l) / (r - l), 0],
+            [0, 2 * n / (t - b), (t + b) / (t - b), 0],
+            [0, 0, -(f + n) / (f - n), -2 * f * n / (f - n)],
+            [0, 0, -1, 0],
+        ])
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.left, self.right, self.bottom, self.top, self.near, self.far])
+
+    def linear_depth(self, depth01: np.ndarray) -> np.ndarray:
+        """Depth-buffer values in [0, 1] -> positive view-space distance along -Z (far where d == 1)."""
+        n, f = self.near, self.far
+        z_ndc = 2.0 * np.asarray(depth01, dtype=np.float64) - 1.0
+        return (2.0 * n * f / (f + n - z_ndc * (f - n))).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pose, a frustum and an image size: everything needed to render one view."""
+
+    pose: Pose
+    frustum: Frustum
+    width: int
+    height: int
+
+    def __post_init__(self):
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"Camera: image size must be positive, got {self.width}x{self.height}")
+
+    @classmethod
+    def perspective(cls, pose: Pose, width: int, height: int, fovy_deg: float = 60.0,
+                    near: float = 0.1, far: float = 100.0) -> "Camera":
+        return cls(pose, Frustum.symmetric(fovy_deg, width / height, near, far), int(width), int(height))
+
+    def view_matrix(self) -> np.ndarray:
+        return self.pose.view_matrix()
+
+    def projection_matrix(self) -> np.ndarray:
+        return self.frustum.projection_matrix()
+
+    def view_projection(self) -> np.ndarray:
+        return self.projection_matrix() @ self.view_matrix()
+
+    def with_pose(self, pose: Pose) -> "Camera":
+        return Camera(pose, self.frustum, self.width, self.height)
+
+    def project(self, points_world: np.ndarray) -> np.ndarray:
+        """World points (N, 3) -> pixel coordinates (N, 2), x right and y down from the top-left corner."""
+        p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        clip = np.c_[p, np.ones(len(p))] @ self.view_projection().T
+        ndc = clip[:, :2] / clip[:, 3:4]
+        return np.c_[(ndc[:, 0] + 1) * 0.5 * self.width, (1 - ndc[:, 1]) * 0.5 * self.height]
+
+
+def gl_matrix(m: np.ndarray) -> bytes:
+    """A row-major numpy matrix as the column-major float32 bytes a GLSL mat4 uniform expects."""
+    return np.ascontiguousarray(np.asarray(m, dtype=np.float32).T).tobytes()
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'WxH' -> (W, H)."""
+    try:
+        w, h = (int(v) for v in str(text).lower().split("x"))
+    except ValueError:
+        raise ValueError(f"size must look like 960x540, got {text!r}") from None
+    if w <= 0 or h <= 0 or w > 8192 or h > 8192:
+        raise ValueError(f"size must be between 1x1 and 8192x8192, got {text!r}")
+    return w, h

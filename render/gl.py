@@ -1,0 +1,91 @@
+"""Headless OpenGL through EGL (moderngl), and GLSL loading.
+
+One standalone context per process (`gl_context()`), GL 4.3+ core so compute shaders work. It runs on Mesa's
+llvmpipe as on NVIDIA's EGL. GLSL sources live in files beside the Python that runs them; `#include "name.glsl"`
+lines are resolved against the including file's folder, then render/.
+"""
+from __future__ import annotations
+
+import ctypes.util
+import functools
+import re
+from pathlib import Path
+
+import moderngl
+
+REQUIRED_GL = 430
+RENDER_DIR = Path(__file__).resolve().parent
+EGL_PACKAGES = "libegl1 libgl1-mesa-dri libegl-mesa0"
+
+
+class GLUnavailableError(RuntimeError):
+    """Headless OpenGL could not start."""
+
+
+@functools.lru_cache(maxsize=1)
+def gl_context() -> moderngl.Context:
+    """The process's headless GL context (created on first use)."""
+    if ctypes.util.find_library("EGL") is None:
+        raise GLUnavailableError(
+            f"libEGL was not found: install Debian's {EGL_PACKAGES} (make demo / make test do this as root)")
+    try:
+        ctx = moderngl.create_standalone_context(backend="egl", require=REQUIRED_GL)
+    except Exception as exc:  # moderngl raises plain Exceptions from the EGL loader
+        raise GLUnavailableError(
+            f"could not create a headless GL {REQUIRED_GL // 100}.{REQUIRED_GL % 100 // 10} context through EGL "
+            f"({exc}); Mesa needs {EGL_PACKAGES}") from exc
+    return ctx
+
+
+_INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"\s*$', re.MULTILINE)
+
+
+def read_glsl(path: str | Path, _seen: tuple = ()) -> str:
+    """A GLSL file's text with its `#include "x.glsl"` lines replaced by the included files."""
+    path = Path(path)
+    if path in _seen:
+        raise ValueError(f"GLSL include cycle: {' -> '.join(str(p) for p in (*_seen, path))}")
+
+    def include(match: re.Match) -> str:
+        name = match.group(1)
+        for folder in (path.parent, RENDER_DIR):
+            if (folder / name).exists():
+                return read_glsl(folder / name, (*_seen, path))
+        raise FileNotFoundError(f"{path}: #include \"{name}\" not found beside it or in {RENDER_DIR}")
+
+    return _INCLUDE.sub(include, path.read_text())
+
+
+@functools.lru_cache(maxsize=None)
+def _program_cached(ctx: moderngl.Context, vertex: Path, fragment: Path | None) -> moderngl.Program:
+    return ctx.program(vertex_shader=read_glsl(vertex),
+                       fragment_shader=read_glsl(fragment) if fragment else None)
+
+
+def program(ctx: moderngl.Context, vertex: str | Path, fragment: str | Path | None = None) -> moderngl.Program:
+    """A (cached) render program from shader files."""
+    return _program_cached(ctx, Path(vertex).resolve(), Path(fragment).resolve() if fragment else None)
+
+
+@functools.lru_cache(maxsize=None)
+def _compute_cached(ctx: moderngl.Context, path: Path, defines: tuple) -> moderngl.ComputeShader:
+    source = read_glsl(path)
+    if defines:
+        head, rest = source.split("\n", 1)  # keep #version first
+        source = head + "\n" + "".join(f"#define {k} {v}\n" for k, v in defines) + rest
+    return ctx.compute_shader(source)
+
+
+def compute(ctx: moderngl.Context, path: str | Path, **defines) -> moderngl.ComputeShader:
+    """A (cached) compute shader from a `.comp` file, with optional `#define`s."""
+    return _compute_cached(ctx, Path(path).resolve(), tuple(sorted(defines.items())))
+
+
+def set_uniforms(prog, **values) -> None:
+    """Set the uniforms a program actually uses (the GLSL compiler drops unused ones)."""
+    for name, value in values.items():
+        if name in prog:
+            if isinstance(value, (bytes, bytearray)):
+                prog[name].write(value)
+            else:
+                prog[name].value = value

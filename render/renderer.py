@@ -1,0 +1,238 @@
+"""The deferred renderer every part shares: G-buffer pass, sun shadow map, lighting pass.
+
+`DeferredRenderer(scene).render(camera, t)` returns a `RenderedFrame` of numpy images (lit sRGB colour, linear
+depth, view-space normal, object id). `gbuffer(camera, t)` does the same passes but leaves the results on the GPU
+(`GBuffer`), for the server's compute shaders. Results are deterministic for a given scene, camera and time.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import moderngl
+import numpy as np
+
+from render.camera import Camera, gl_matrix
+from render.gl import gl_context, program, set_uniforms
+from render.scene import Scene
+
+HERE = Path(__file__).resolve().parent
+
+
+@dataclass
+class RenderedFrame:
+    """One rendered view as numpy arrays, top row first."""
+
+    color: np.ndarray      # (H, W, 3) uint8, sRGB
+    depth: np.ndarray      # (H, W) float32, linear view depth in metres; inf where nothing was hit
+    normal: np.ndarray     # (H, W, 3) float32, view space, facing the camera
+    object_id: np.ndarray  # (H, W) int32, 0 where nothing was hit
+
+
+def read_texture(tex: moderngl.Texture, components: int, dtype: str) -> np.ndarray:
+    """A texture's level 0 as a numpy array, flipped so the top row comes first."""
+    data = np.frombuffer(tex.read(), dtype=np.dtype(dtype))
+    shape = (tex.height, tex.width, components) if components > 1 else (tex.height, tex.width)
+    return data.reshape(shape)[::-1].copy()
+
+
+class GBuffer:
+    """GPU-resident render targets of one view: albedo, view normal, view position, object id, depth, lit colour."""
+
+    def __init__(self, ctx: moderngl.Context, width: int, height: int):
+        self.width, self.height = width, height
+        self.albedo = ctx.texture((width, height), 4, dtype="f2")
+        self.normal = ctx.texture((width, height), 4, dtype="f2")
+        self.position = ctx.texture((width, height), 4, dtype="f4")
+        self.object_id = ctx.texture((width, height), 1, dtype="i4")
+        self.depth = ctx.depth_texture((width, height))
+        self.color = ctx.texture((width, height), 4, dtype="f1")
+        for tex in (self.albedo, self.normal, self.position, self.object_id, self.color):
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self.geometry_fbo = ctx.framebuffer([self.albedo, self.normal, self.position, self.object_id], self.depth)
+        self.color_fbo = ctx.framebuffer([self.color])
+        self.camera: Camera | None = None
+
+    def clear(self) -> None:
+        self.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+
+    def read_color(self) -> np.ndarray:
+        return read_texture(self.color, 4, "u1")[..., :3]
+
+    def read_depth(self) -> np.ndarray:
+        """Linear view depth in metres (inf where nothing was hit)."""
+        pos = read_texture(self.position, 4, "f4")
+        return np.where(pos[..., 3] > 0, -pos[..., 2], np.inf).astype(np.float32)
+
+    def read_depth_buffer(self) -> np.ndarray:
+        """The raw [0, 1] depth buffer."""
+        return read_texture(self.depth, 1, "f4")
+
+    def read_normal(self) -> np.ndarray:
+        return read_texture(self.normal, 4, "f2")[..., :3].astype(np.float32)
+
+    def read_object_id(self) -> np.ndarray:
+        return read_texture(self.object_id, 1, "i4")
+
+    def read(self) -> RenderedFrame:
+        return RenderedFrame(self.read_color(), self.read_depth(), self.read_normal(), self.read_object_id())
+
+    def release(self) -> None:
+        for obj in (self.geometry_fbo, self.color_fbo, self.albedo, self.normal, self.position, self.object_id,
+                    self.depth, self.color):
+            obj.release()
+
+
+class _GpuMesh:
+    def __init__(self, ctx, mesh, geometry_prog, shadow_prog, white):
+        pos = mesh.positions
+        uvs = mesh.uvs if mesh.uvs is not None else np.zeros((len(pos), 2), np.float32)
+        # One buffer per attribute: llvmpipe is far slower with a padded interleaved layout in the shadow pass.
+        self.positions = ctx.buffer(pos.astype("f4").tobytes())
+        self.normals = ctx.buffer(mesh.normals.astype("f4").tobytes())
+        self.uvs = ctx.buffer(uvs.astype("f4").tobytes())
+        self.ibo = ctx.buffer(mesh.indices.astype("u4").tobytes())
+        self.geometry_vao = ctx.vertex_array(
+            geometry_prog, [(self.positions, "3f", "in_position"), (self.normals, "3f", "in_normal"),
+                            (self.uvs, "2f", "in_uv")], self.ibo)
+        self.shadow_vao = ctx.vertex_array(shadow_prog, [(self.positions, "3f", "in_position")], self.ibo)
+        mat = mesh.material
+        if mat.texture is not None:
+            img = np.ascontiguousarray(mat.texture[::-1])  # GL's first row is the bottom one
+            self.texture = ctx.texture((img.shape[1], img.shape[0]), img.shape[2], img.tobytes())
+            self.texture.build_mipmaps()
+            self.texture.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        else:
+            self.texture = white
+        self.uv_mode = 1 if (mat.uv_mode == "triplanar" or mesh.uvs is None) and mat.texture is not None else 0
+        self.material = mat
+
+
+class DeferredRenderer:
+    """Renders a `Scene` from any `Camera` at any time; G-buffers are allocated per image size and reused."""
+
+    def __init__(self, scene: Scene, ctx: moderngl.Context | None = None, shadow_size: int = 2048):
+        self.scene = scene
+        self.ctx = ctx or gl_context()
+        ctx = self.ctx
+        self.geometry_prog = program(ctx, HERE / "gbuffer.vert.glsl", HERE / "gbuffer.frag.glsl")
+        self.shadow_prog = program(ctx, HERE / "shadow.vert.glsl", HERE / "shadow.frag.glsl")
+        self.lighting_prog = program(ctx, HERE / "fullscreen.vert.glsl", HERE / "lighting.frag.glsl")
+        self.fullscreen = ctx.vertex_array(self.lighting_prog, [])
+        self.white = ctx.texture((1, 1), 4, bytes([255, 255, 255, 255]))
+        self.meshes = [_GpuMesh(ctx, o.mesh, self.geometry_prog, self.shadow_prog, self.white)
+                       for o in scene.objects]
+        self.shadow_size = shadow_size
+        self.shadow_map = ctx.depth_texture((shadow_size, shadow_size))
+        self.shadow_map.compare_func = "<="
+        self.shadow_map.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        self.shadow_map.repeat_x = self.shadow_map.repeat_y = False
+        self.shadow_fbo = ctx.framebuffer(depth_attachment=self.shadow_map)
+        self._shadow_time: float | None = None
+        self._gbuffers: dict[tuple[int, int], GBuffer] = {}
+
+    # ----------------------------------------------------------------------------------------- passes
+    def light_view_projection(self) -> np.ndarray:
+        sun = self.scene.sun
+        d = np.asarray(sun.direction, np.float64) / np.linalg.norm(sun.direction)
+        e = sun.shadow_extent
+        from render.camera import Pose
+        eye = np.asarray(sun.shadow_center, np.float64) - d * 2 * e
+        up = (0.0, 1.0, 0.0) if abs(d[1]) < 0.99 else (1.0, 0.0, 0.0)
+        view = Pose.look_at(eye, sun.shadow_center, up).view_matrix()
+        near, far = 0.0, 4 * e
+        ortho = np.array([[1 / e, 0, 0, 0], [0, 1 / e, 0, 0],
+                          [0, 0, -2 / (far - near), -(far + near) / (far - near)], [0, 0, 0, 1]])
+        return ortho @ view
+
+    def _render_shadows(self, t: float) -> None:
+        if self._shadow_time == t:
+            return
+        light_vp = self.light_view_projection()
+        self.shadow_fbo.use()
+        self.shadow_fbo.clear(depth=1.0)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        for obj, gm in zip(self.scene.objects, self.meshes):
+            if obj.cast_shadow:
+                self.shadow_prog["u_light_mvp"].write(gl_matrix(light_vp @ obj.model_matrix(t)))
+                gm.shadow_vao.render(moderngl.TRIANGLES)
+        self._shadow_time = t
+
+    def gbuffer_for(self, width: int, height: int) -> GBuffer:
+        key = (int(width), int(height))
+        if key not in self._gbuffers:
+            self._gbuffers[key] = GBuffer(self.ctx, *key)
+        return self._gbuffers[key]
+
+    def draw_geometry(self, camera: Camera, t: float, prog: moderngl.Program | None = None,
+                      vaos: str = "geometry_vao") -> None:
+        """Draw every object with `prog` (the G-buffer program unless given) into the bound framebuffer."""
+        prog = prog or self.geometry_prog
+        set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
+        for obj, gm in zip(self.scene.objects, self.meshes):
+            mat = gm.material
+            gm.texture.use(0)
+            set_uniforms(prog, u_model=gl_matrix(obj.model_matrix(t)), u_texture=0,
+                         u_base_color=tuple(float(c) for c in mat.base_color), u_uv_mode=gm.uv_mode,
+                         u_uv_scale=float(mat.uv_scale), u_specular=float(mat.specular),
+                         u_shininess=float(max(mat.shininess, 1.0)),
+                         u_emissive=tuple(float(c) for c in mat.emissive), u_object_id=obj.object_id)
+            getattr(gm, vaos).render(moderngl.TRIANGLES)
+
+    def geometry_pass(self, camera: Camera, t: float, target: GBuffer | None = None) -> GBuffer:
+        gb = target or self.gbuffer_for(camera.width, camera.height)
+        gb.geometry_fbo.use()
+        gb.clear()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
+        self.draw_geometry(camera, t)
+        gb.camera = camera
+        return gb
+
+    def lighting_pass(self, gb: GBuffer, t: float) -> None:
+        camera = gb.camera
+        self._render_shadows(t)
+        scene, view = self.scene, camera.view_matrix()
+        prog = self.lighting_prog
+        gb.color_fbo.use()
+        self.ctx.disable(moderngl.DEPTH_TEST)
+        gb.albedo.use(0)
+        gb.normal.use(1)
+        gb.position.use(2)
+        self.shadow_map.use(3)
+        sun_dir = view[:3, :3] @ (np.asarray(scene.sun.direction) / np.linalg.norm(scene.sun.direction))
+        lights = scene.point_lights
+        n = len(lights)
+        pad = scene.MAX_POINT_LIGHTS - n
+        light_pos = np.array([(view @ np.r_[l.position, 1.0])[:3] for l in lights] + [[0, 0, 0]] * pad, "f4")
+        light_col = np.array([np.asarray(l.color) * l.intensity for l in lights] + [[0, 0, 0]] * pad, "f4")
+        light_rad = np.array([l.radius for l in lights] + [1.0] * pad, "f4")
+        set_uniforms(prog, u_albedo=0, u_normal=1, u_position=2, u_shadow_map=3,
+                     u_inv_view=gl_matrix(np.linalg.inv(view)),
+                     u_inv_proj=gl_matrix(np.linalg.inv(camera.projection_matrix())),
+                     u_light_vp=gl_matrix(self.light_view_projection()),
+                     u_sun_dir_view=tuple(float(c) for c in sun_dir),
+                     u_sun_color=tuple(float(c) for c in np.asarray(scene.sun.color) * scene.sun.intensity),
+                     u_ambient=tuple(float(c) for c in scene.ambient), u_sky=tuple(float(c) for c in scene.sky),
+                     u_shadow_texel=1.0 / self.shadow_size, u_num_lights=n,
+                     u_light_pos=light_pos.tobytes(), u_light_color=light_col.tobytes(),
+                     u_light_radius=light_rad.tobytes())
+        self.fullscreen.render(moderngl.TRIANGLES, vertices=3)
+
+    def gbuffer(self, camera: Camera, t: float = 0.0) -> GBuffer:
+        """Geometry and lighting passes; the results stay on the GPU."""
+        gb = self.geometry_pass(camera, t)
+        self.lighting_pass(gb, t)
+        return gb
+
+    def render(self, camera: Camera, t: float = 0.0) -> RenderedFrame:
+        """Render one view and read it back."""
+        return self.gbuffer(camera, t).read()
+
+    def render_color(self, camera: Camera, t: float = 0.0) -> np.ndarray:
+        gb = self.gbuffer(camera, t)
+        return gb.read_color()
+
+    def finish(self) -> None:
+        self.ctx.finish()

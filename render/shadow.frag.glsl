@@ -1,0 +1,3 @@
+#version 430
+// Shadow pass: depth only.
+void main() {}

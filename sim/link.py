@@ -1,0 +1,331 @@
+"""One direction of a network link, modelled like Linux ``netem`` in virtual time.
+
+A :class:`LinkModel` turns ``send(t, message, size_bytes)`` calls into
+:class:`Delivery` records with an arrival time, and hands them back through
+``poll(now)`` once virtual time has reached their arrival.  Nothing here
+touches sockets or the wall clock: times are plain float seconds chosen by
+the caller (a simulator's event loop).
+
+The model, per message:
+
+1. **Loss** -- dropped with probability ``loss`` (drawn from a seeded numpy
+   ``Generator``).  Like netem, loss is applied on enqueue, so a dropped
+   message does not occupy the link.
+2. **Serialization** -- with ``rate_mbit`` set, the message queues behind
+   earlier ones and leaves at
+   ``depart = max(t, link_free_at) + size_bytes * 8 / (rate_mbit * 1e6)``.
+   Without a rate, ``depart = t``.
+3. **Propagation** -- ``arrive = depart + delay + jitter`` where jitter is
+   uniform in ``[-J, +J]`` or normal with sigma ``J``, clipped so that
+   ``arrive >= depart``.
+4. **Ordering** -- unless ``reorder=True``, a message never arrives before
+   one sent earlier (``arrive = max(arrive, previous arrive)``).
+
+Loss and jitter use two independent random streams derived from ``seed``, so
+the set of dropped messages depends only on ``seed`` and ``loss`` (not on the
+jitter settings), and the same seed always reproduces the same behaviour.
+
+Example::
+
+    >>> link = LinkModel(delay_ms=20, rate_mbit=100)
+    >>> d = link.send(0.0, b"frame", size_bytes=125_000)   # 10 ms to serialize
+    >>> round(d.t_arrive, 6)
+    0.03
+    >>> [x.message for x in link.poll(0.05)]
+    [b'frame']
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+__all__ = [
+    "Delivery",
+    "LinkStats",
+    "LinkModel",
+    "parse_duration_ms",
+    "parse_rate_mbit",
+    "parse_loss",
+]
+
+JitterDistribution = Literal["uniform", "normal"]
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """One message in flight (or delivered) on a :class:`LinkModel`.
+
+    Times are virtual seconds: ``t_sent`` when ``send`` was called,
+    ``t_depart`` when its last bit left the sender (after queueing and
+    serialization), ``t_arrive`` when it reaches the receiver.  ``seq`` is the
+    0-based index of the ``send`` call on this link (dropped ones included).
+    """
+
+    message: Any
+    size_bytes: int
+    t_sent: float
+    t_depart: float
+    t_arrive: float
+    seq: int = 0
+
+    @property
+    def latency(self) -> float:
+        """Seconds from ``send`` to arrival (queueing + serialization + delay)."""
+        return self.t_arrive - self.t_sent
+
+
+@dataclass
+class LinkStats:
+    """Running counters of a :class:`LinkModel` (``sent`` counts every ``send``)."""
+
+    sent: int = 0
+    dropped: int = 0
+    delivered: int = 0
+    bytes_sent: int = 0
+    bytes_dropped: int = 0
+    bytes_delivered: int = 0
+
+
+def _require_finite_nonneg(name: str, value: float) -> float:
+    value = float(value)
+    if not math.isfinite(value) or value < 0.0:
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return value
+
+
+class LinkModel:
+    """One direction of a netem-like link in virtual time.
+
+    Parameters
+    ----------
+    delay_ms:
+        Fixed one-way propagation delay in milliseconds (>= 0).
+    jitter_ms:
+        Jitter amplitude J in milliseconds (>= 0): half-width of the uniform
+        distribution, or the standard deviation of the normal one.
+    jitter:
+        ``"uniform"`` (in ``[-J, +J]``) or ``"normal"`` (sigma ``J``).
+    rate_mbit:
+        Link rate in Mbit/s (> 0), or ``None`` for no serialization cost.
+    loss:
+        Drop probability per message, a fraction in ``[0, 1)``.
+    reorder:
+        If ``False`` (default) messages arrive in send order, as with netem
+        when jitter is combined with a rate; if ``True`` jitter may let a
+        later message overtake an earlier one.
+    seed:
+        Seed for the loss and jitter random streams.
+    """
+
+    def __init__(
+        self,
+        delay_ms: float = 0.0,
+        jitter_ms: float = 0.0,
+        jitter: JitterDistribution = "uniform",
+        rate_mbit: float | None = None,
+        loss: float = 0.0,
+        reorder: bool = False,
+        seed: int = 0,
+    ) -> None:
+        self.delay_ms = _require_finite_nonneg("delay_ms", delay_ms)
+        self.jitter_ms = _require_finite_nonneg("jitter_ms", jitter_ms)
+        if jitter not in ("uniform", "normal"):
+            raise ValueError(f"jitter must be 'uniform' or 'normal', got {jitter!r}")
+        self.jitter: JitterDistribution = jitter
+        if rate_mbit is not None:
+            rate_mbit = float(rate_mbit)
+            if not math.isfinite(rate_mbit) or rate_mbit <= 0.0:
+                raise ValueError(f"rate_mbit must be a finite number > 0 or None, got {rate_mbit!r}")
+        self.rate_mbit: float | None = rate_mbit
+        loss = float(loss)
+        if not (0.0 <= loss < 1.0):
+            raise ValueError(f"loss must be a fraction in [0, 1), got {loss!r}")
+        self.loss = loss
+        self.reorder = bool(reorder)
+        self.seed = int(seed)
+
+        loss_seq, jitter_seq = np.random.SeedSequence(self.seed).spawn(2)
+        self._loss_rng = np.random.default_rng(loss_seq)
+        self._jitter_rng = np.random.default_rng(jitter_seq)
+        self._link_free_at = -math.inf
+        self._last_arrival = -math.inf
+        self._next_seq = 0
+        self._in_flight: list[tuple[float, int, Delivery]] = []
+        self.stats = LinkStats()
+
+    def __repr__(self) -> str:
+        return (
+            f"LinkModel(delay_ms={self.delay_ms}, jitter_ms={self.jitter_ms}, "
+            f"jitter={self.jitter!r}, rate_mbit={self.rate_mbit}, loss={self.loss}, "
+            f"reorder={self.reorder}, seed={self.seed})"
+        )
+
+    # -- sending -------------------------------------------------------------
+
+    def serialization_time(self, size_bytes: int) -> float:
+        """Seconds needed to put ``size_bytes`` on the wire (0 without a rate)."""
+        if self.rate_mbit is None:
+            return 0.0
+        return size_bytes * 8.0 / (self.rate_mbit * 1e6)
+
+    def _draw_jitter_s(self) -> float:
+        # One draw per send (dropped or not) so message i's jitter depends only on seed and i.
+        j = self.jitter_ms * 1e-3
+        if j == 0.0:
+            return 0.0
+        if self.jitter == "uniform":
+            return float(self._jitter_rng.uniform(-j, j))
+        return float(self._jitter_rng.normal(0.0, j))
+
+    def send(self, t: float, message: Any, size_bytes: int) -> Delivery | None:
+        """Offer ``message`` of ``size_bytes`` at virtual time ``t`` seconds.
+
+        Returns the :class:`Delivery` (also queued for :meth:`poll`), or
+        ``None`` if the message was dropped.
+        """
+        t = float(t)
+        if not math.isfinite(t):
+            raise ValueError(f"send time t must be finite, got {t!r}")
+        if isinstance(size_bytes, bool) or int(size_bytes) != size_bytes or size_bytes < 0:
+            raise ValueError(f"size_bytes must be a non-negative integer, got {size_bytes!r}")
+        size_bytes = int(size_bytes)
+
+        seq = self._next_seq
+        self._next_seq += 1
+        self.stats.sent += 1
+        self.stats.bytes_sent += size_bytes
+
+        dropped = bool(self._loss_rng.random() < self.loss)
+        jitter_s = self._draw_jitter_s()
+        if dropped:
+            self.stats.dropped += 1
+            self.stats.bytes_dropped += size_bytes
+            return None
+
+        depart = max(t, self._link_free_at) + self.serialization_time(size_bytes)
+        if self.rate_mbit is not None:
+            self._link_free_at = depart
+        arrive = depart + max(0.0, self.delay_ms * 1e-3 + jitter_s)
+        if not self.reorder:
+            arrive = max(arrive, self._last_arrival)
+        self._last_arrival = max(self._last_arrival, arrive)
+
+        delivery = Delivery(message, size_bytes, t, depart, arrive, seq)
+        heapq.heappush(self._in_flight, (arrive, seq, delivery))
+        return delivery
+
+    # -- receiving -----------------------------------------------------------
+
+    def poll(self, now: float) -> list[Delivery]:
+        """Remove and return messages with ``t_arrive <= now``, in arrival order
+        (ties broken by send order)."""
+        out: list[Delivery] = []
+        while self._in_flight and self._in_flight[0][0] <= now:
+            out.append(heapq.heappop(self._in_flight)[2])
+        self.stats.delivered += len(out)
+        self.stats.bytes_delivered += sum(d.size_bytes for d in out)
+        return out
+
+    def next_arrival(self) -> float | None:
+        """Arrival time of the earliest message still in flight, or ``None``."""
+        return self._in_flight[0][0] if self._in_flight else None
+
+    def pending(self) -> int:
+        """Number of messages in flight (sent, not dropped, not yet polled)."""
+        return len(self._in_flight)
+
+    @property
+    def link_free_at(self) -> float:
+        """Virtual time at which the sender's queue drains (``-inf`` if never used)."""
+        return self._link_free_at
+
+
+# -- parse helpers for CLIs ----------------------------------------------------
+
+_NUMBER = r"([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)"
+_DURATION_RE = re.compile(rf"^\s*{_NUMBER}\s*(us|usec|ms|msec|s|sec|secs)?\s*$", re.IGNORECASE)
+_RATE_RE = re.compile(rf"^\s*{_NUMBER}\s*([a-z]*)\s*$", re.IGNORECASE)
+_LOSS_RE = re.compile(rf"^\s*{_NUMBER}\s*(%?)\s*$")
+
+_DURATION_TO_MS = {None: 1.0, "us": 1e-3, "usec": 1e-3, "ms": 1.0, "msec": 1.0, "s": 1e3, "sec": 1e3, "secs": 1e3}
+
+# tc(8) units: "...bit" are bits per second, "...bps" are BYTES per second.
+_RATE_TO_MBIT = {
+    "": 1.0,  # a bare number is Mbit/s
+    "bit": 1e-6,
+    "kbit": 1e-3,
+    "mbit": 1.0,
+    "gbit": 1e3,
+    "tbit": 1e6,
+    "bps": 8e-6,
+    "kbps": 8e-3,
+    "mbps": 8.0,
+    "gbps": 8e3,
+    "tbps": 8e6,
+}
+
+
+def parse_duration_ms(text: str | float) -> float:
+    """Parse a netem-style duration into milliseconds.
+
+    ``"20ms"``, ``"0.02s"``, ``"500us"`` and bare numbers (milliseconds, e.g.
+    ``"20"``) are accepted; the result must be finite and >= 0.
+    """
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        value = float(text)
+    else:
+        m = _DURATION_RE.match(str(text))
+        if m is None:
+            raise ValueError(f"cannot parse duration {text!r}: expected e.g. '20ms', '0.02s', '500us' or '20'")
+        unit = m.group(2).lower() if m.group(2) else None
+        value = float(m.group(1)) * _DURATION_TO_MS[unit]
+    if not math.isfinite(value) or value < 0:
+        raise ValueError(f"duration {text!r} must be finite and >= 0")
+    return value
+
+
+def parse_rate_mbit(text: str | float) -> float:
+    """Parse a tc-style rate into Mbit/s.
+
+    ``"200mbit"``, ``"1gbit"``, ``"500kbit"``, ``"9600bit"``; bare numbers are
+    Mbit/s.  As in tc(8), ``"...bps"`` units mean *bytes* per second
+    (``"1mbps"`` == 8 Mbit/s).  The result must be finite and > 0.
+    """
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        value = float(text)
+    else:
+        m = _RATE_RE.match(str(text))
+        unit = m.group(2).lower() if m else None
+        if m is None or unit not in _RATE_TO_MBIT:
+            raise ValueError(
+                f"cannot parse rate {text!r}: expected e.g. '200mbit', '1gbit', '500kbit' or a bare Mbit/s number"
+            )
+        value = float(m.group(1)) * _RATE_TO_MBIT[unit]
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"rate {text!r} must be finite and > 0")
+    return value
+
+
+def parse_loss(text: str | float) -> float:
+    """Parse a loss probability into a fraction in ``[0, 1)``.
+
+    ``"0.5%"`` -> 0.005; a bare number is already a fraction (``"0.005"``).
+    """
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        value, percent = float(text), False
+    else:
+        m = _LOSS_RE.match(str(text))
+        if m is None:
+            raise ValueError(f"cannot parse loss {text!r}: expected a percentage like '0.5%' or a fraction like '0.005'")
+        percent = m.group(2) == "%"
+        value = float(m.group(1)) / (100.0 if percent else 1.0)
+    if not (0.0 <= value < 1.0):
+        hint = "" if percent or value < 1.0 else f" (did you mean '{text}%'?)"
+        raise ValueError(f"loss {text!r} must be in [0, 1) as a fraction or [0%, 100%) as a percentage{hint}")
+    return value

@@ -1,0 +1,571 @@
+"""Tests for protocol.quads: 80-bit quad packing and the columnar zstd quad blob."""
+
+from __future__ import annotations
+
+import math
+import tracemalloc
+
+import numpy as np
+import pytest
+import zstandard
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from protocol.errors import ProtocolError
+from protocol.quads import (
+    HEADER_STRUCT,
+    LAYER_STRUCT,
+    MAX_SIZE_LOG2,
+    NORMAL_MAX_ANGULAR_ERROR,
+    OFFSETS_PER_QUAD,
+    PACKED_BITS_PER_QUAD,
+    FrameType,
+    LayerKind,
+    QuadFrame,
+    QuadLayer,
+    QuadSet,
+    decode_quad_frame,
+    encode_quad_frame,
+    pack_normals,
+    pack_quad_words,
+    packed_size_bits_per_quad,
+    quad_frame_stats,
+    unpack_normals,
+    unpack_quad_words,
+)
+
+DETERMINISTIC = settings(derandomize=True, deadline=None, database=None, max_examples=60)
+
+
+# ---------------------------------------------------------------------------
+# Builders
+# ---------------------------------------------------------------------------
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (radians) between unit rows of a and b, accurate for small angles."""
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1))
+
+
+def random_quads(rng: np.random.Generator, n: int, width: int, height: int) -> QuadSet:
+    flattened = rng.random(n) < 0.5
+    normal = rng.normal(size=(n, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    return QuadSet(
+        x=rng.integers(0, width, n),
+        y=rng.integers(0, height, n),
+        size_log2=rng.integers(0, MAX_SIZE_LOG2 + 1, n),
+        flattened=flattened,
+        alpha=rng.random(n) < 0.3,
+        normal=normal,
+        depth=rng.uniform(0.1, 50.0, n),
+        offsets=rng.normal(scale=0.05, size=(int((~flattened).sum()), OFFSETS_PER_QUAD)),
+    )
+
+
+def small_frame(seed: int = 0) -> QuadFrame:
+    rng = np.random.default_rng(seed)
+    layers = [
+        QuadLayer(LayerKind.VISIBLE, 64, 48, np.arange(16), (0, 0, 64, 48), random_quads(rng, 5, 64, 48)),
+        QuadLayer(LayerKind.HIDDEN, 32, 32, np.ones(16), (64, 0, 32, 32), random_quads(rng, 3, 32, 32)),
+    ]
+    return QuadFrame(frame_id=42, frame_type=FrameType.RESIDUAL, reference_id=40, layers=layers)
+
+
+def split_blob(blob: bytes, layer_count: int) -> tuple[bytes, bytes]:
+    """(headers, decompressed payload) of a valid blob."""
+    cut = HEADER_STRUCT.size + layer_count * LAYER_STRUCT.size
+    return blob[:cut], zstandard.ZstdDecompressor().decompress(blob[cut:])
+
+
+def rebuild_blob(headers: bytes, raw: bytes) -> bytes:
+    """A blob with the given headers and a freshly compressed (possibly tampered) payload."""
+    return headers + zstandard.ZstdCompressor(level=3).compress(raw)
+
+
+def make_header(*, magic=b"QDCQ", version=1, flags=0, frame_id=1, frame_type=0, reference_id=0,
+                layer_count=1, payload_size=0) -> bytes:
+    return HEADER_STRUCT.pack(magic, version, flags, frame_id, frame_type, reference_id, layer_count, payload_size)
+
+
+def make_layer(*, kind=0, width=64, height=64, quads=0, offsets=0) -> bytes:
+    return LAYER_STRUCT.pack(kind, width, height, 0, 0, width, height, *([0.0] * 16), quads, offsets)
+
+
+def assert_frames_equal(a: QuadFrame, b: QuadFrame) -> None:
+    assert (a.frame_id, a.frame_type, a.reference_id) == (b.frame_id, b.frame_type, b.reference_id)
+    assert len(a.layers) == len(b.layers)
+    for la, lb in zip(a.layers, b.layers):
+        assert (la.kind, la.width, la.height, la.atlas_rect) == (lb.kind, lb.width, lb.height, lb.atlas_rect)
+        np.testing.assert_array_equal(la.camera.view(np.uint32), lb.camera.view(np.uint32))
+        qa, qb = la.quads, lb.quads
+        for name in ("x", "y", "size_log2", "flattened", "alpha"):
+            np.testing.assert_array_equal(getattr(qa, name), getattr(qb, name), err_msg=name)
+            assert getattr(qb, name).dtype == getattr(qa, name).dtype
+        np.testing.assert_array_equal(qa.depth.view(np.uint32), qb.depth.view(np.uint32))
+        np.testing.assert_array_equal(qa.offsets.view(np.uint16), qb.offsets.view(np.uint16))
+        if len(qa):
+            assert angle_between(qa.normal, qb.normal).max() <= NORMAL_MAX_ANGULAR_ERROR
+
+
+# ---------------------------------------------------------------------------
+# Hypothesis strategies
+# ---------------------------------------------------------------------------
+
+
+@st.composite
+def quad_sets(draw, width: int, height: int, max_n: int = 24) -> QuadSet:
+    n = draw(st.integers(0, max_n))
+    flattened = draw(hnp.arrays(bool, n))
+    raw_normal = draw(hnp.arrays(np.float64, (n, 3), elements=st.floats(-1.0, 1.0)))
+    norms = np.linalg.norm(raw_normal, axis=1)
+    raw_normal[norms < 1e-3] = (0.0, 0.0, 1.0)
+    normal = raw_normal / np.linalg.norm(raw_normal, axis=1, keepdims=True)
+    m = int((~flattened).sum())
+    return QuadSet(
+        x=draw(hnp.arrays(np.uint16, n, elements=st.integers(0, min(width, 4096) - 1))),
+        y=draw(hnp.arrays(np.uint16, n, elements=st.integers(0, min(height, 4096) - 1))),
+        size_log2=draw(hnp.arrays(np.uint8, n, elements=st.integers(0, MAX_SIZE_LOG2))),
+        flattened=flattened,
+        alpha=draw(hnp.arrays(bool, n)),
+        normal=normal,
+        depth=draw(hnp.arrays(np.float32, n, elements=st.floats(width=32, allow_nan=False, allow_infinity=False))),
+        offsets=draw(
+            hnp.arrays(np.float16, (m, OFFSETS_PER_QUAD),
+                       elements=st.floats(width=16, allow_nan=False, allow_infinity=False))
+        ),
+    )
+
+
+@st.composite
+def quad_layers(draw) -> QuadLayer:
+    width = draw(st.integers(1, 5000))
+    height = draw(st.integers(1, 5000))
+    return QuadLayer(
+        kind=draw(st.sampled_from(list(LayerKind))),
+        width=width,
+        height=height,
+        camera=draw(hnp.arrays(np.float32, 16, elements=st.floats(width=32, allow_nan=False, allow_infinity=False))),
+        atlas_rect=tuple(draw(st.lists(st.integers(0, 0xFFFF), min_size=4, max_size=4))),
+        quads=draw(quad_sets(width, height)),
+    )
+
+
+@st.composite
+def quad_frames(draw) -> QuadFrame:
+    return QuadFrame(
+        frame_id=draw(st.integers(0, 2**32 - 1)),
+        frame_type=draw(st.sampled_from(list(FrameType))),
+        reference_id=draw(st.integers(0, 2**32 - 1)),
+        layers=draw(st.lists(quad_layers(), max_size=3)),
+    )
+
+
+# ---------------------------------------------------------------------------
+# Round trips and packing
+# ---------------------------------------------------------------------------
+
+
+@DETERMINISTIC
+@given(frame=quad_frames(), level=st.sampled_from([1, 3, 9]))
+def test_blob_round_trip(frame: QuadFrame, level: int) -> None:
+    decoded = decode_quad_frame(encode_quad_frame(frame, level=level))
+    assert_frames_equal(frame, decoded)
+
+
+def test_empty_frame_round_trip() -> None:
+    frame = QuadFrame(frame_id=0, frame_type=FrameType.REFERENCE, reference_id=0, layers=[])
+    assert_frames_equal(frame, decode_quad_frame(encode_quad_frame(frame)))
+    layer = QuadLayer(LayerKind.REVEALED, 8, 8, np.zeros(16), (0, 0, 8, 8), QuadSet.empty())
+    frame = QuadFrame(frame_id=1, frame_type=FrameType.REFERENCE, reference_id=0, layers=[layer])
+    assert_frames_equal(frame, decode_quad_frame(bytearray(encode_quad_frame(frame))))
+
+
+@DETERMINISTIC
+@given(hnp.arrays(np.float64, (32, 3), elements=st.floats(-1e6, 1e6)))
+def test_normals_within_documented_bound(raw: np.ndarray) -> None:
+    norms = np.linalg.norm(raw, axis=1)
+    raw = raw[norms > 1e-6]
+    if raw.shape[0] == 0:
+        return
+    theta, phi = pack_normals(raw)
+    assert theta.dtype == np.uint8 and phi.dtype == np.uint8
+    out = unpack_normals(theta, phi)
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-6)
+    unit = raw / np.linalg.norm(raw, axis=1, keepdims=True)
+    assert angle_between(unit, out).max() <= NORMAL_MAX_ANGULAR_ERROR
+
+
+def test_normal_bound_is_tight_and_poles_exact() -> None:
+    rng = np.random.default_rng(1)
+    n = rng.normal(size=(200_000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    err = angle_between(n, unpack_normals(*pack_normals(n)))
+    assert err.max() <= NORMAL_MAX_ANGULAR_ERROR
+    assert err.max() > 0.9 * NORMAL_MAX_ANGULAR_ERROR  # the documented bound is not loose
+    assert math.degrees(NORMAL_MAX_ANGULAR_ERROR) < 0.8
+    poles = np.array([[0, 0, 1], [0, 0, -1], [-1, 0, 0]], np.float64)
+    theta, phi = pack_normals(poles)
+    np.testing.assert_array_equal(theta[:2], [0, 255])
+    np.testing.assert_allclose(unpack_normals(theta, phi)[:2], poles[:2], atol=1e-7)
+    assert phi[2] == 0  # phi = pi wraps to code 0 (phi = -pi)
+
+
+def test_pack_normals_rejects_zero_and_bad_shape() -> None:
+    with pytest.raises(ValueError, match=r"normal\[1\]"):
+        pack_normals([[0, 0, 1], [0, 0, 0]])
+    with pytest.raises(ValueError, match="shape"):
+        pack_normals([1.0, 0.0, 0.0])
+
+
+def test_quad_word_bit_layout() -> None:
+    quads = QuadSet(
+        x=[1, 4095], y=[2, 4095], size_log2=[3, 11], flattened=[True, False], alpha=[True, False],
+        normal=[[0, 0, 1], [0, 1, 0]], depth=[1.0, 2.0], offsets=np.zeros((1, 16)),
+    )
+    words = pack_quad_words(quads)
+    assert words.dtype == np.uint32
+    assert int(words[0]) == (1 << 31) | (1 << 30) | (3 << 24) | (1 << 12) | 2
+    assert int(words[1]) == (11 << 24) | (4095 << 12) | 4095
+    fields = unpack_quad_words(words)
+    np.testing.assert_array_equal(fields.x, quads.x)
+    np.testing.assert_array_equal(fields.y, quads.y)
+    np.testing.assert_array_equal(fields.size_log2, quads.size_log2)
+    np.testing.assert_array_equal(fields.flattened, quads.flattened)
+    np.testing.assert_array_equal(fields.alpha, quads.alpha)
+
+
+def test_bits_per_quad_is_80() -> None:
+    frame = small_frame()
+    assert packed_size_bits_per_quad(frame) == PACKED_BITS_PER_QUAD == 80
+    stats = quad_frame_stats(frame)
+    assert stats.packed_bits_per_quad == 80
+    assert stats.quad_count == 8
+    assert stats.raw_payload_bytes == 10 * stats.quad_count + 32 * stats.offset_count
+    assert stats.total_bytes == len(encode_quad_frame(frame))
+
+
+# ---------------------------------------------------------------------------
+# QuadSet / QuadLayer / QuadFrame validation and helpers
+# ---------------------------------------------------------------------------
+
+
+def quad_kwargs(**overrides):
+    kwargs = dict(x=[0, 1], y=[0, 1], size_log2=[0, 1], flattened=[True, False], alpha=[False, True],
+                  normal=[[0, 0, 1], [1, 0, 0]], depth=[1.0, 2.0], offsets=np.zeros((1, 16)))
+    kwargs.update(overrides)
+    return kwargs
+
+
+@pytest.mark.parametrize(
+    "overrides, pattern",
+    [
+        (dict(x=[0, 4096]), r"QuadSet\.x\[1\].*0\.\.4095.*4096"),
+        (dict(y=[-1, 0]), r"QuadSet\.y\[0\]"),
+        (dict(x=[0.0, 1.0]), r"QuadSet\.x.*integers"),
+        (dict(size_log2=[0, 12]), r"QuadSet\.size_log2\[1\].*0\.\.11.*12"),
+        (dict(y=[0, 1, 2]), r"QuadSet\.y.*length 2"),
+        (dict(flattened=[2, 0]), r"QuadSet\.flattened\[0\]"),
+        (dict(depth=[1.0, np.inf]), r"QuadSet\.depth\[1\].*finite"),
+        (dict(depth=[1.0, 1e39]), r"QuadSet\.depth\[1\].*finite"),
+        (dict(normal=[[0, 0, 2], [1, 0, 0]]), r"QuadSet\.normal\[0\].*unit"),
+        (dict(normal=[[0, 0, 1]]), r"QuadSet\.normal.*shape"),
+        (dict(offsets=np.zeros((2, 16))), r"QuadSet\.offsets.*\(1, 16\).*\(2, 16\)"),
+        (dict(offsets=np.full((1, 16), 1e6)), r"QuadSet\.offsets\[0,0\].*finite"),
+    ],
+)
+def test_quad_set_rejects_bad_columns(overrides, pattern) -> None:
+    QuadSet(**quad_kwargs())  # the baseline is valid
+    with pytest.raises(ValueError, match=pattern):
+        QuadSet(**quad_kwargs(**overrides))
+
+
+def test_quad_set_dtypes_and_empty() -> None:
+    q = QuadSet(**quad_kwargs())
+    assert (q.x.dtype, q.y.dtype, q.size_log2.dtype) == (np.uint16, np.uint16, np.uint8)
+    assert (q.flattened.dtype, q.alpha.dtype) == (bool, bool)
+    assert (q.normal.dtype, q.depth.dtype, q.offsets.dtype) == (np.float32, np.float32, np.float16)
+    np.testing.assert_array_equal(q.offset_index, [-1, 0])
+    empty = QuadSet.empty()
+    assert len(empty) == 0 and empty.offsets.shape == (0, 16) and empty.normal.shape == (0, 3)
+    assert len(QuadSet.concatenate([])) == 0
+
+
+@DETERMINISTIC
+@given(quads=quad_sets(4096, 4096, max_n=30), data=st.data())
+def test_select_and_concatenate_keep_offsets_consistent(quads: QuadSet, data) -> None:
+    n = len(quads)
+    mask = data.draw(hnp.arrays(bool, n))
+    picked = quads.select(mask)
+    assert len(picked) == int(mask.sum())
+    rows = quads.offset_index[mask]
+    np.testing.assert_array_equal(picked.offsets.view(np.uint16), quads.offsets[rows[rows >= 0]].view(np.uint16))
+    np.testing.assert_array_equal(picked.depth, quads.depth[mask])
+
+    order = data.draw(st.permutations(range(n))) if n else []
+    shuffled = quads.select(np.asarray(order, dtype=np.int64))
+    for i, j in enumerate(order):
+        a, b = shuffled.offset_index[i], quads.offset_index[j]
+        assert (a < 0) == (b < 0)
+        if a >= 0:
+            np.testing.assert_array_equal(shuffled.offsets[a].view(np.uint16), quads.offsets[b].view(np.uint16))
+
+    k = data.draw(st.integers(0, n))
+    joined = QuadSet.concatenate([quads.select(np.arange(k)), quads.select(np.arange(k, n))])
+    for name in ("x", "y", "size_log2", "flattened", "alpha", "normal", "depth", "offsets"):
+        np.testing.assert_array_equal(getattr(joined, name), getattr(quads, name), err_msg=name)
+
+
+def test_select_rejects_wrong_mask_length() -> None:
+    with pytest.raises(ValueError, match=r"shape \(2,\)"):
+        QuadSet(**quad_kwargs()).select(np.array([True]))
+
+
+def test_layer_and_frame_validation() -> None:
+    quads = QuadSet(**quad_kwargs(x=[0, 10]))
+    with pytest.raises(ValueError, match=r"quads\.x\[1\].*width 10.*10"):
+        QuadLayer(LayerKind.VISIBLE, 10, 10, np.zeros(16), (0, 0, 1, 1), quads)
+    with pytest.raises(ValueError, match="camera"):
+        QuadLayer(LayerKind.VISIBLE, 16, 16, np.zeros(15), (0, 0, 1, 1), quads)
+    with pytest.raises(ValueError, match=r"camera\[3\].*finite"):
+        QuadLayer(LayerKind.VISIBLE, 16, 16, np.array([0, 0, 0, np.nan] + [0] * 12), (0, 0, 1, 1), quads)
+    with pytest.raises(ValueError, match=r"atlas_rect\[2\].*65536"):
+        QuadLayer(LayerKind.VISIBLE, 16, 16, np.zeros(16), (0, 0, 65536, 1), quads)
+    with pytest.raises(ValueError, match="kind"):
+        QuadLayer(9, 16, 16, np.zeros(16), (0, 0, 1, 1), quads)
+    layer = QuadLayer(LayerKind.VISIBLE, 16, 16, np.zeros(16), (0, 0, 1, 1), quads)
+    with pytest.raises(ValueError, match="at most 16 layers, got 17"):
+        QuadFrame(0, FrameType.REFERENCE, 0, [layer] * 17)
+    with pytest.raises(ValueError, match="frame_id"):
+        QuadFrame(2**32, FrameType.REFERENCE, 0, [layer])
+    with pytest.raises(ValueError, match="frame_type"):
+        QuadFrame(0, 5, 0, [layer])
+
+
+# ---------------------------------------------------------------------------
+# Hostile input
+# ---------------------------------------------------------------------------
+
+
+def test_every_truncation_raises_protocol_error() -> None:
+    blob = encode_quad_frame(small_frame())
+    decode_quad_frame(blob)
+    for cut in range(len(blob)):
+        with pytest.raises(ProtocolError):
+            decode_quad_frame(blob[:cut])
+
+
+def test_trailing_bytes_rejected() -> None:
+    blob = encode_quad_frame(small_frame())
+    with pytest.raises(ProtocolError, match="unused data"):
+        decode_quad_frame(blob + b"\x00")
+    empty = encode_quad_frame(QuadFrame(0, FrameType.REFERENCE, 0, []))
+    with pytest.raises(ProtocolError, match="1 trailing bytes"):
+        decode_quad_frame(empty + b"\x00")
+
+
+def test_random_byte_flips_never_crash() -> None:
+    frame = small_frame(3)
+    blob = encode_quad_frame(frame)
+    headers, raw = split_blob(blob, len(frame.layers))
+    rng = np.random.default_rng(1234)
+    outcomes = {"error": 0, "ok": 0}
+    for trial in range(600):
+        if trial % 2 == 0:  # flip bytes of the blob as sent
+            target = bytearray(blob)
+        else:  # flip bytes of headers/raw columns, then recompress (exercises post-decompression checks)
+            target = bytearray(headers + raw)
+        for _ in range(int(rng.integers(1, 4))):
+            i = int(rng.integers(0, len(target)))
+            target[i] ^= int(rng.integers(1, 256))
+        if trial % 2 == 1:
+            target = bytearray(rebuild_blob(bytes(target[: len(headers)]), bytes(target[len(headers):])))
+        try:
+            result = decode_quad_frame(bytes(target))
+        except ProtocolError:
+            outcomes["error"] += 1
+        else:
+            assert isinstance(result, QuadFrame)
+            outcomes["ok"] += 1
+    assert outcomes["error"] > 0 and outcomes["ok"] > 0
+
+
+@pytest.mark.parametrize(
+    "tamper, pattern",
+    [
+        ("size_log2", r"layer\[0\]\.quads\.size_log2\[0\].*0\.\.11.*12"),
+        ("x_outside", r"layer\[0\].*quads\.x\[0\].*width 64"),
+        ("nan_depth", r"layer\[0\].*depth\[0\].*finite"),
+        ("flattened_flip", r"layer\[0\]\.offset_count: expected"),
+        ("inf_offset", r"layer\[0\].*offsets\[0,0\].*finite"),
+    ],
+)
+def test_decoded_columns_are_validated(tamper: str, pattern: str) -> None:
+    frame = small_frame(5)
+    headers, raw = split_blob(encode_quad_frame(frame), len(frame.layers))
+    n = frame.quad_count
+    words = np.frombuffer(raw, "<u4", count=n).copy()
+    depth_at = 6 * n
+    offsets_at = 10 * n
+    raw = bytearray(raw)
+    if tamper == "size_log2":
+        words[0] = (words[0] & ~np.uint32(0x3F << 24)) | np.uint32(12 << 24)
+    elif tamper == "x_outside":
+        words[0] = (words[0] & ~np.uint32(0xFFF << 12)) | np.uint32(64 << 12)
+    elif tamper == "flattened_flip":
+        words[0] ^= np.uint32(1 << 31)
+    elif tamper == "nan_depth":
+        raw[depth_at:depth_at + 4] = np.float32(np.nan).tobytes()
+    elif tamper == "inf_offset":
+        assert frame.offset_count > 0
+        raw[offsets_at:offsets_at + 2] = np.float16(np.inf).tobytes()
+    raw[: 4 * n] = words.tobytes()
+    with pytest.raises(ProtocolError, match=pattern):
+        decode_quad_frame(rebuild_blob(headers, bytes(raw)))
+
+
+@pytest.mark.parametrize(
+    "header, pattern",
+    [
+        (make_header(magic=b"QDCX"), r"header\.magic: expected b'QDCQ', got b'QDCX'"),
+        (make_header(version=2), r"header\.version: expected 1, got 2"),
+        (make_header(flags=4), r"header\.flags"),
+        (make_header(frame_type=7), r"header\.frame_type.*got 7"),
+        (make_header(layer_count=17), r"header\.layer_count: expected at most 16, got 17"),
+        (make_header(layer_count=1) + make_layer(kind=9), r"layer\[0\]\.kind.*got 9"),
+        (make_header(layer_count=1) + make_layer(width=0), r"layer\[0\].*0x64"),
+        (make_header(layer_count=1, payload_size=42) + make_layer(quads=1, offsets=2),
+         r"layer\[0\]\.offset_count: expected <= quad count 1, got 2"),
+        (make_header(layer_count=1, payload_size=11) + make_layer(quads=1),
+         r"header\.payload_size: expected 10.*got 11"),
+    ],
+)
+def test_bad_headers_named(header: bytes, pattern: str) -> None:
+    blob = header + zstandard.ZstdCompressor().compress(b"")
+    with pytest.raises(ProtocolError, match=pattern):
+        decode_quad_frame(blob)
+
+
+def test_non_bytes_input_rejected() -> None:
+    with pytest.raises(ProtocolError, match="bytes-like"):
+        decode_quad_frame("QDCQ")  # type: ignore[arg-type]
+
+
+def _gigabyte_of_zeros_frame(size: int = 1 << 30) -> bytes:
+    """A ~32 KB zstd frame that declares and inflates to `size` zero bytes."""
+    cobj = zstandard.ZstdCompressor(level=1).compressobj(size=size)
+    chunk = bytes(1 << 20)
+    parts = [cobj.compress(chunk) for _ in range(size // len(chunk))]
+    parts.append(cobj.flush())
+    return b"".join(parts)
+
+
+@pytest.fixture(scope="module")
+def gigabyte_bomb() -> bytes:
+    bomb = _gigabyte_of_zeros_frame()
+    assert zstandard.frame_content_size(bomb) == 1 << 30
+    return bomb
+
+
+def _peak_python_allocation(fn) -> int:
+    tracemalloc.start()
+    try:
+        fn()
+    finally:
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+    return peak
+
+
+def _decode_expecting_error(blob: bytes, pattern: str, **limits) -> None:
+    with pytest.raises(ProtocolError, match=pattern):
+        decode_quad_frame(blob, **limits)
+
+
+def test_oversized_counts_rejected_before_decompression(gigabyte_bomb: bytes) -> None:
+    # 1 GiB of zeros claimed by consistent header counts: refused from the counts alone.
+    quads = (1 << 30) // 10
+    header = make_header(layer_count=1, payload_size=10 * quads) + make_layer(quads=quads)
+    blob = header + gigabyte_bomb
+    peak = _peak_python_allocation(lambda: _decode_expecting_error(blob, r"max_quads 8388608"))
+    assert peak < 4 << 20
+    peak = _peak_python_allocation(
+        lambda: _decode_expecting_error(blob, r"exceeds max_bytes", max_quads=1 << 28)
+    )
+    assert peak < 4 << 20
+    # Per-layer counts summed over layers also hit the cap.
+    many = make_header(layer_count=2, payload_size=0) + make_layer(quads=5) + make_layer(quads=6)
+    _decode_expecting_error(many + gigabyte_bomb, r"layer\[1\]\.quad_count: total quads 11 exceeds max_quads 10",
+                            max_quads=10)
+
+
+def test_zstd_bomb_behind_small_header_rejected(gigabyte_bomb: bytes) -> None:
+    header = make_header(layer_count=1, payload_size=30) + make_layer(quads=3)
+    blob = header + gigabyte_bomb
+    peak = _peak_python_allocation(
+        lambda: _decode_expecting_error(blob, r"declares 1073741824 bytes, expected 30")
+    )
+    assert peak < 4 << 20
+
+
+def test_zstd_bomb_lying_about_its_size_rejected(gigabyte_bomb: bytes) -> None:
+    # Rewrite the bomb's declared content size to 30 bytes; libzstd must stop at the declared size.
+    fhd = gigabyte_bomb[4]
+    assert fhd >> 6 == 2 and not fhd & 0x20 and not fhd & 0x03  # 4-byte size, window byte, no dict id
+    liar = gigabyte_bomb[:6] + (30).to_bytes(4, "little") + gigabyte_bomb[10:]
+    assert zstandard.frame_content_size(liar) == 30
+    blob = make_header(layer_count=1, payload_size=30) + make_layer(quads=3) + liar
+    peak = _peak_python_allocation(lambda: _decode_expecting_error(blob, r"zstd decompression failed"))
+    assert peak < 4 << 20
+    # Same for a frame declaring zero bytes behind an empty frame header.
+    zero_liar = gigabyte_bomb[:6] + (0).to_bytes(4, "little") + gigabyte_bomb[10:]
+    blob = make_header(layer_count=0, payload_size=0) + zero_liar
+    peak = _peak_python_allocation(lambda: _decode_expecting_error(blob, r"payload"))
+    assert peak < 4 << 20
+
+
+def test_zstd_frame_without_content_size_rejected() -> None:
+    payload = zstandard.ZstdCompressor(write_content_size=False).compress(bytes(30))
+    blob = make_header(layer_count=1, payload_size=30) + make_layer(quads=3) + payload
+    _decode_expecting_error(blob, r"must declare its content size")
+
+
+# ---------------------------------------------------------------------------
+# Columnar layout
+# ---------------------------------------------------------------------------
+
+
+def smooth_frame() -> QuadFrame:
+    """A 64x64 grid of 8x8-pixel quads on a smooth curved surface (normals and depths vary slowly)."""
+    j, i = np.mgrid[0:64, 0:64]
+    i, j = i.ravel(), j.ravel()
+    u, v = (i - 32) / 64.0, (j - 32) / 64.0
+    normal = np.stack([0.4 * u, 0.4 * v, np.ones_like(u)], axis=1)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    n = i.size
+    quads = QuadSet(
+        x=8 * i, y=8 * j, size_log2=np.full(n, 3), flattened=np.ones(n, bool), alpha=np.zeros(n, bool),
+        normal=normal, depth=5.0 + 0.5 * u + 0.25 * v + 0.2 * (u * u + v * v),
+        offsets=np.zeros((0, 16)),
+    )
+    layer = QuadLayer(LayerKind.VISIBLE, 512, 512, np.zeros(16), (0, 0, 512, 512), quads)
+    return QuadFrame(frame_id=1, frame_type=FrameType.REFERENCE, reference_id=1, layers=[layer])
+
+
+def test_columnar_layout_beats_interleaved() -> None:
+    frame = smooth_frame()
+    quads = frame.layers[0].quads
+    theta, phi = pack_normals(quads.normal)
+    records = np.empty(len(quads), dtype=[("word", "<u4"), ("theta", "u1"), ("phi", "u1"), ("depth", "<f4")])
+    records["word"] = pack_quad_words(quads)
+    records["theta"], records["phi"], records["depth"] = theta, phi, quads.depth
+    assert records.itemsize * 8 == PACKED_BITS_PER_QUAD
+    compressor = zstandard.ZstdCompressor(level=3, write_content_size=True, write_checksum=True)
+    interleaved = len(compressor.compress(records.tobytes()))
+    stats = quad_frame_stats(frame, level=3)
+    assert stats.raw_payload_bytes == records.nbytes
+    assert stats.compressed_payload_bytes < 0.9 * interleaved, (stats.compressed_payload_bytes, interleaved)

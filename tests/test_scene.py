@@ -1,0 +1,73 @@
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from render.scene import SceneError, load_scene, scene_from_dict
+
+
+def test_builtin_courtyard_has_what_the_card_asks(courtyard):
+    assert courtyard.triangle_count > 5000
+    animated = [o for o in courtyard.objects if o.animation is not None]
+    assert {o.animation.kind for o in animated} == {"rotate", "translate", "orbit"}
+    assert len(courtyard.point_lights) >= 4
+    assert sum(o.mesh.material.texture is not None for o in courtyard.objects) >= 4
+    # Animated objects really move.
+    for o in animated:
+        assert not np.allclose(o.model_matrix(0.0), o.model_matrix(1.0))
+
+
+def test_scene_file_json_and_toml(tmp_path):
+    obj = tmp_path / "box.obj"
+    trimesh.creation.box(extents=[1, 2, 1]).export(obj)
+    spec = {"models": [{"path": "box.obj", "position": [0, 1, -3],
+                        "animation": {"type": "orbit", "radius": 2, "period_s": 3}},
+                       {"primitive": "plane", "size": [10, 10], "color": [0.5, 0.5, 0.5]}],
+            "point_lights": [{"position": [0, 3, 0]}], "sun": {"intensity": 2.0}}
+    (tmp_path / "s.json").write_text(json.dumps(spec))
+    scene = load_scene(tmp_path / "s.json")
+    assert len(scene.objects) == 2 and scene.objects[0].animation.kind == "orbit"
+    (tmp_path / "s.toml").write_text('[[models]]\nprimitive = "sphere"\nradius = 0.5\n'
+                                     '[sun]\ndirection = [0, -1, 0]\n')
+    assert load_scene(tmp_path / "s.toml").objects[0].mesh.name == "sphere"
+
+
+@pytest.mark.parametrize("spec, message", [
+    ({}, "scene.models"),
+    ({"models": [{"primitive": "cone"}]}, r"models\[0\].primitive"),
+    ({"models": [{"primitive": "box", "position": [0, 1]}]}, r"models\[0\].position"),
+    ({"models": [{"primitive": "box", "animation": {"type": "spin"}}]}, r"models\[0\].animation.type"),
+    ({"models": [{"primitive": "box", "animation": {"type": "orbit", "period_s": 0}}]}, "period_s"),
+    ({"models": [{"primitive": "box", "colour": [1, 0, 0]}]}, "unknown field.*colour"),
+    ({"models": [{"path": "missing.glb"}]}, r"models\[0\].path"),
+    ({"models": [{"primitive": "box"}], "point_lights": [{"color": [1, 1, 1]}]}, r"point_lights\[0\].position"),
+    ({"models": [{"primitive": "box"}], "sun": {"intensity": "bright"}}, "sun.intensity"),
+])
+def test_scene_file_errors_name_the_field(tmp_path, spec, message):
+    with pytest.raises(SceneError, match=message):
+        scene_from_dict(spec, base_dir=tmp_path)
+
+
+def test_bad_scene_specs(tmp_path):
+    with pytest.raises(SceneError, match="builtin:courtyard"):
+        load_scene("builtin:nowhere")
+    with pytest.raises(SceneError, match="no such file"):
+        load_scene(tmp_path / "nope.glb")
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(SceneError, match="not valid JSON"):
+        load_scene(tmp_path / "bad.json")
+
+
+def test_gltf_textured_mesh_round_trip(tmp_path):
+    """A textured GLB written by trimesh loads with its UVs and base-colour texture."""
+    from PIL import Image
+    box = trimesh.creation.box()
+    uv = np.c_[(box.vertices[:, 0] + 0.5), (box.vertices[:, 1] + 0.5)]
+    img = Image.fromarray(np.full((8, 8, 3), (200, 30, 30), np.uint8))
+    box.visual = trimesh.visual.TextureVisuals(uv=uv, image=img)
+    box.export(tmp_path / "box.glb")
+    scene = load_scene(tmp_path / "box.glb")
+    mesh = scene.objects[0].mesh
+    assert mesh.uvs is not None and mesh.material.texture is not None
+    assert mesh.material.texture[..., 0].mean() > 150

@@ -1,0 +1,269 @@
+"""Tests for the H.264 atlas encoder (server.video) and decoder (client.video)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from skimage.metrics import peak_signal_noise_ratio
+
+from client.video import AtlasDecoder, VideoError, nal_unit_types
+from server.video import AtlasEncoder, EncodedFrame, VideoSettings
+
+WIDTH, HEIGHT = 320, 192
+FRAME_COUNT = 10
+FORCED_KEYFRAMES = (0, 5)
+NAL_IDR = 5
+NAL_NON_IDR = 1
+
+
+def textured_frame(t: int) -> np.ndarray:
+    """Synthetic atlas: a fixed texture moving 3 px right and 1 px down per frame.
+
+    Fine detail (stripes, rings, grain) is in the brightness and the colour
+    varies smoothly, like a rendered image, so 4:2:0 chroma subsampling alone
+    does not cap the PSNR.
+    """
+    y, x = np.mgrid[0:HEIGHT, 0:WIDTH].astype(np.float64)
+    x = x - 3.0 * t
+    y = y - 1.0 * t
+    grain_size = (HEIGHT + FRAME_COUNT, WIDTH + 3 * FRAME_COUNT)
+    grain = np.random.default_rng(1234).normal(0.0, 5.0, size=grain_size)
+    grain = grain[FRAME_COUNT - t : FRAME_COUNT - t + HEIGHT, 3 * FRAME_COUNT - 3 * t :][:, :WIDTH]
+    luma = (
+        120
+        + 50 * np.sin(x / 9.0) * np.cos(y / 13.0)
+        + 40 * np.sin(np.hypot(x - 160, y - 96) / 6.0)
+        + grain
+    )
+    tint = np.stack(
+        [
+            1.0 + 0.35 * np.sin(x / 70.0),
+            1.0 + 0.35 * np.cos(y / 55.0),
+            1.0 - 0.35 * np.sin((x + y) / 90.0),
+        ],
+        axis=-1,
+    )
+    return np.clip(luma[..., None] * tint, 0, 255).astype(np.uint8)
+
+
+def encode_clip(settings: VideoSettings) -> tuple[list[np.ndarray], list[EncodedFrame]]:
+    sources = [textured_frame(t) for t in range(FRAME_COUNT)]
+    with AtlasEncoder(WIDTH, HEIGHT, settings) as encoder:
+        encoded = [
+            encoder.encode(src, keyframe=i in FORCED_KEYFRAMES) for i, src in enumerate(sources)
+        ]
+    return sources, encoded
+
+
+@pytest.fixture(scope="module")
+def clip_crf18() -> tuple[list[np.ndarray], list[EncodedFrame]]:
+    # threads=2 fixes the slice count (x264 slices per thread) on any machine.
+    return encode_clip(VideoSettings(crf=18, threads=2))
+
+
+def test_every_access_unit_decodes_with_high_psnr(clip_crf18):
+    sources, encoded = clip_crf18
+    decoder = AtlasDecoder()
+    for i, (src, frame) in enumerate(zip(sources, encoded)):
+        rgb = decoder.decode(frame.data)
+        assert rgb is not None, f"access unit {i} gave no picture"
+        assert rgb.shape == (HEIGHT, WIDTH, 3) and rgb.dtype == np.uint8
+        psnr = peak_signal_noise_ratio(src, rgb, data_range=255)
+        assert psnr >= 30.0, f"frame {i}: PSNR {psnr:.2f} dB"
+        assert not decoder.needs_keyframe
+        assert decoder.decode_ms >= 0.0
+
+
+def test_idr_exactly_on_forced_frames(clip_crf18):
+    _, encoded = clip_crf18
+    assert [f.frame_index for f in encoded] == list(range(FRAME_COUNT))
+    assert [f.keyframe for f in encoded] == [i in FORCED_KEYFRAMES for i in range(FRAME_COUNT)]
+    for f in encoded:
+        types = nal_unit_types(f.data)
+        assert f.data.startswith((b"\x00\x00\x01", b"\x00\x00\x00\x01"))  # Annex-B
+        assert f.encode_ms >= 0.0
+        if f.keyframe:
+            # IDRs carry SPS (7) and PPS (8) so a decoder can join there.
+            assert {7, 8, NAL_IDR} <= set(types) and NAL_NON_IDR not in types
+        else:
+            assert NAL_IDR not in types and NAL_NON_IDR in types
+
+
+def test_periodic_gop_and_bitrate_mode():
+    sources, encoded = encode_clip(VideoSettings(crf=None, bitrate_kbps=800, gop=3, threads=1))
+    keyframes = [i for i, f in enumerate(encoded) if f.keyframe]
+    assert keyframes == [0, 3, 5, 8]  # forced 0 and 5; periodic every 3 frames after an IDR
+    decoder = AtlasDecoder()
+    for src, f in zip(sources, encoded):
+        rgb = decoder.decode(f.data)
+        assert rgb is not None
+        assert peak_signal_noise_ratio(src, rgb, data_range=255) > 20.0
+
+
+def test_higher_crf_gives_fewer_bytes(clip_crf18):
+    _, encoded18 = clip_crf18
+    _, encoded35 = encode_clip(VideoSettings(crf=35, threads=2))
+    size18 = sum(len(f.data) for f in encoded18)
+    size35 = sum(len(f.data) for f in encoded35)
+    assert size35 < size18
+
+
+def test_truncated_access_unit_raises_and_recovers_at_next_idr(clip_crf18):
+    sources, encoded = clip_crf18
+    decoder = AtlasDecoder()
+    for f in encoded[:3]:
+        assert decoder.decode(f.data) is not None
+    truncated = encoded[3].data[: len(encoded[3].data) // 2]
+    with pytest.raises(VideoError, match="access unit"):
+        decoder.decode(truncated)
+    assert decoder.needs_keyframe
+    assert decoder.decode(encoded[4].data) is None  # P-frame dropped while waiting
+    assert decoder.needs_keyframe
+    for i in (5, 6, 7):
+        rgb = decoder.decode(encoded[i].data)
+        assert rgb is not None
+        assert peak_signal_noise_ratio(sources[i], rgb, data_range=255) >= 30.0
+    assert not decoder.needs_keyframe
+
+
+def test_truncated_idr_raises(clip_crf18):
+    _, encoded = clip_crf18
+    decoder = AtlasDecoder()
+    with pytest.raises(VideoError):
+        decoder.decode(encoded[0].data[:-40])
+    assert decoder.needs_keyframe
+    assert decoder.decode(encoded[5].data) is not None
+
+
+def test_missing_slice_raises(clip_crf18):
+    _, encoded = clip_crf18
+    data = encoded[2].data
+    assert nal_unit_types(data).count(NAL_NON_IDR) >= 2, "expected a multi-slice picture"
+    last_slice = data.rfind(b"\x00\x00\x01")
+    decoder = AtlasDecoder()
+    decoder.decode(encoded[0].data)
+    decoder.decode(encoded[1].data)
+    with pytest.raises(VideoError):
+        decoder.decode(data[:last_slice])
+    assert decoder.needs_keyframe
+
+
+@pytest.mark.parametrize(
+    "garbage",
+    [
+        b"",
+        np.random.default_rng(7).bytes(1500),
+        b"\x00\x00\x00\x01" + np.random.default_rng(8).bytes(1500),
+        b"\x00\x00\x00\x01\x65" + np.random.default_rng(9).bytes(1500),  # fake IDR slice
+    ],
+    ids=["empty", "random", "random-after-start-code", "fake-idr-header"],
+)
+def test_garbage_raises_video_error_and_recovers(clip_crf18, garbage):
+    sources, encoded = clip_crf18
+    decoder = AtlasDecoder()
+    assert decoder.decode(encoded[0].data) is not None
+    with pytest.raises(VideoError):
+        decoder.decode(garbage)
+    assert decoder.needs_keyframe
+    rgb = decoder.decode(encoded[5].data)
+    assert rgb is not None
+    assert peak_signal_noise_ratio(sources[5], rgb, data_range=255) >= 30.0
+
+
+@settings(
+    max_examples=60,
+    derandomize=True,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    payload=st.binary(min_size=0, max_size=600),
+    nal_header=st.integers(min_value=0, max_value=255),
+    after=st.sampled_from([0, 1]),
+)
+def test_arbitrary_bytes_only_ever_raise_video_error(clip_crf18, payload, nal_header, after):
+    _, encoded = clip_crf18
+    decoder = AtlasDecoder()
+    decoder.decode(encoded[0].data)
+    if after:
+        decoder.decode(encoded[1].data)
+    data = b"\x00\x00\x00\x01" + bytes([nal_header]) + payload
+    try:
+        out = decoder.decode(data)
+    except VideoError:
+        assert decoder.needs_keyframe
+    else:
+        assert out is None or (out.shape == (HEIGHT, WIDTH, 3) and out.dtype == np.uint8)
+    assert decoder.decode(encoded[5].data) is not None
+
+
+def test_starting_on_non_idr_waits_for_keyframe(clip_crf18):
+    _, encoded = clip_crf18
+    decoder = AtlasDecoder()
+    assert decoder.needs_keyframe
+    for i in (2, 3, 4):
+        try:
+            out = decoder.decode(encoded[i].data)
+        except VideoError:
+            out = None
+        assert out is None
+        assert decoder.needs_keyframe
+    assert decoder.decode(encoded[5].data) is not None
+    assert not decoder.needs_keyframe
+    assert decoder.decode(encoded[6].data) is not None
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((HEIGHT, WIDTH, 4), np.uint8),
+        np.zeros((WIDTH, HEIGHT, 3), np.uint8),
+        np.zeros((HEIGHT, WIDTH), np.uint8),
+        np.zeros((HEIGHT, WIDTH, 3), np.float32),
+    ],
+    ids=["rgba", "transposed", "gray", "float"],
+)
+def test_bad_input_image_raises_value_error(bad):
+    with AtlasEncoder(WIDTH, HEIGHT, VideoSettings(threads=1)) as encoder:
+        with pytest.raises(ValueError, match=r"\(192, 320, 3\)") as info:
+            encoder.encode(bad, keyframe=True)
+        assert str(bad.shape) in str(info.value)
+        assert encoder.frames_encoded == 0
+        assert encoder.encode(textured_frame(0), keyframe=False).keyframe  # first frame is IDR
+
+
+@pytest.mark.parametrize("size", [(321, 192), (320, 191), (0, 192), (320, -2)])
+def test_bad_atlas_size_raises_value_error(size):
+    with pytest.raises(ValueError, match="width|height"):
+        AtlasEncoder(*size)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"crf": None},
+        {"crf": 60},
+        {"bitrate_kbps": 0},
+        {"preset": "warp"},
+        {"gop": 0},
+        {"threads": -1},
+        {"fps": 0},
+    ],
+)
+def test_invalid_settings_rejected(kwargs):
+    with pytest.raises(ValueError):
+        VideoSettings(**kwargs)
+
+
+def test_closed_encoder_and_decoder_refuse_work(clip_crf18):
+    _, encoded = clip_crf18
+    encoder = AtlasEncoder(WIDTH, HEIGHT)
+    encoder.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        encoder.encode(textured_frame(0), keyframe=True)
+    with AtlasDecoder() as decoder:
+        assert decoder.decode(encoded[0].data) is not None
+    with pytest.raises(RuntimeError, match="closed"):
+        decoder.decode(encoded[0].data)
