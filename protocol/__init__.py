@@ -31,3 +31,7 @@ __all__ = [
     "quad_frame_stats",
     "unpack_normals",
 ]
+
+from protocol.frame import FramePayload, Method, PayloadType, decode_frame_payload, encode_frame_payload  # noqa: E402
+
+__all__ += ["FramePayload", "Method", "PayloadType", "decode_frame_payload", "encode_frame_payload"]

@@ -1,0 +1,23 @@
+"""The server half of a streaming method: poses in, `FramePayload`s out."""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+from protocol.frame import FramePayload
+from render.camera import Pose
+
+
+class MethodServer(ABC):
+    """Renders the scene for a (predicted) pose and encodes one frame. One instance per client session."""
+
+    name: str
+
+    @abstractmethod
+    def encode(self, pose: Pose, t: float) -> FramePayload:
+        """Render and encode the frame for `pose` at scene time `t` (seconds). `payload.stats` holds ms per stage."""
+
+    def request_reference(self) -> None:
+        """The client lost its reference state: make the next frame self-contained (default: every frame is)."""
+
+    def close(self) -> None:
+        pass
