@@ -178,6 +178,17 @@ class Camera:
     def with_pose(self, pose: Pose) -> "Camera":
         return Camera(pose, self.frustum, self.width, self.height)
 
+    def to_array(self) -> np.ndarray:
+        """16 float32: position (3), quaternion xyzw (4), frustum l, r, b, t, near, far (6), 3 zeros."""
+        return np.r_[self.pose.position, self.pose.quat, self.frustum.as_array(), np.zeros(3)].astype(np.float32)
+
+    @classmethod
+    def from_array(cls, values, width: int, height: int) -> "Camera":
+        a = np.asarray(values, dtype=np.float64).reshape(-1)
+        if a.shape != (16,):
+            raise ValueError(f"Camera.from_array: expected 16 numbers, got {a.size}")
+        return cls(Pose(a[:3], a[3:7]), Frustum(*a[7:13]), int(width), int(height))
+
     def project(self, points_world: np.ndarray) -> np.ndarray:
         """World points (N, 3) -> pixel coordinates (N, 2), x right and y down from the top-left corner."""
         p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)

@@ -92,9 +92,9 @@ class _GpuMesh:
         self.normals = ctx.buffer(mesh.normals.astype("f4").tobytes())
         self.uvs = ctx.buffer(uvs.astype("f4").tobytes())
         self.ibo = ctx.buffer(mesh.indices.astype("u4").tobytes())
-        self.geometry_vao = ctx.vertex_array(
-            geometry_prog, [(self.positions, "3f", "in_position"), (self.normals, "3f", "in_normal"),
-                            (self.uvs, "2f", "in_uv")], self.ibo)
+        self._vaos: dict[int, moderngl.VertexArray] = {}
+        self.ctx = ctx
+        self.geometry_vao = self.vao_for(geometry_prog)
         self.shadow_vao = ctx.vertex_array(shadow_prog, [(self.positions, "3f", "in_position")], self.ibo)
         mat = mesh.material
         if mat.texture is not None:
@@ -106,6 +106,16 @@ class _GpuMesh:
             self.texture = white
         self.uv_mode = 1 if (mat.uv_mode == "triplanar" or mesh.uvs is None) and mat.texture is not None else 0
         self.material = mat
+
+    def vao_for(self, prog: moderngl.Program) -> moderngl.VertexArray:
+        """A vertex array binding this mesh to `prog` (a VAO renders with the program it was made for)."""
+        key = prog.glo
+        if key not in self._vaos:
+            attrs = [(buf, fmt, name) for buf, fmt, name in ((self.positions, "3f", "in_position"),
+                                                            (self.normals, "3f", "in_normal"),
+                                                            (self.uvs, "2f", "in_uv")) if name in prog]
+            self._vaos[key] = self.ctx.vertex_array(prog, attrs, self.ibo)
+        return self._vaos[key]
 
 
 class DeferredRenderer:
@@ -165,8 +175,7 @@ class DeferredRenderer:
             self._gbuffers[key] = GBuffer(self.ctx, *key)
         return self._gbuffers[key]
 
-    def draw_geometry(self, camera: Camera, t: float, prog: moderngl.Program | None = None,
-                      vaos: str = "geometry_vao") -> None:
+    def draw_geometry(self, camera: Camera, t: float, prog: moderngl.Program | None = None) -> None:
         """Draw every object with `prog` (the G-buffer program unless given) into the bound framebuffer."""
         prog = prog or self.geometry_prog
         set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
@@ -178,15 +187,19 @@ class DeferredRenderer:
                          u_uv_scale=float(mat.uv_scale), u_specular=float(mat.specular),
                          u_shininess=float(max(mat.shininess, 1.0)),
                          u_emissive=tuple(float(c) for c in mat.emissive), u_object_id=obj.object_id)
-            getattr(gm, vaos).render(moderngl.TRIANGLES)
+            gm.vao_for(prog).render(moderngl.TRIANGLES)
 
-    def geometry_pass(self, camera: Camera, t: float, target: GBuffer | None = None) -> GBuffer:
+    def geometry_pass(self, camera: Camera, t: float, target: GBuffer | None = None,
+                      prog: moderngl.Program | None = None) -> GBuffer:
+        """Fill a G-buffer (the renderer's own for this size unless `target` is given). `prog` may replace the
+        G-buffer program with one that includes render/material.glsl (e.g. the server's depth peeling); bind its
+        extra textures to units >= 4 before calling."""
         gb = target or self.gbuffer_for(camera.width, camera.height)
         gb.geometry_fbo.use()
         gb.clear()
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-        self.draw_geometry(camera, t)
+        self.draw_geometry(camera, t, prog)
         gb.camera = camera
         return gb
 
@@ -220,9 +233,9 @@ class DeferredRenderer:
                      u_light_radius=light_rad.tobytes())
         self.fullscreen.render(moderngl.TRIANGLES, vertices=3)
 
-    def gbuffer(self, camera: Camera, t: float = 0.0) -> GBuffer:
+    def gbuffer(self, camera: Camera, t: float = 0.0, target: GBuffer | None = None) -> GBuffer:
         """Geometry and lighting passes; the results stay on the GPU."""
-        gb = self.geometry_pass(camera, t)
+        gb = self.geometry_pass(camera, t, target)
         self.lighting_pass(gb, t)
         return gb
 

@@ -1,0 +1,43 @@
+// Quad proxies in a layer camera's view space, shared by the server's quad stages and the mesh builder.
+// A layer image is u_size pixels; image points are (x, y) pixels from the top-left corner. A quad is a plane
+// (unit normal n facing the camera, view depth of the plane on the ray through its centre) plus 16 depth offsets:
+// sub-quad s (0 TL, 1 TR, 2 BL, 3 BR) corner c (same order) = off[s][c], signed distances along the corner's ray.
+
+uniform vec4 u_frustum;   // left, right, bottom, top on the near plane
+uniform float u_near;
+uniform float u_far;
+uniform ivec2 u_size;     // layer image size in pixels
+
+// The (unnormalised) view-space ray through image point p, with z = -near.
+vec3 ray_dir(vec2 p) {
+    return vec3(u_frustum.x + (u_frustum.y - u_frustum.x) * p.x / float(u_size.x),
+                u_frustum.w - (u_frustum.w - u_frustum.z) * p.y / float(u_size.y),
+                -u_near);
+}
+
+// Distance along the unit ray r where it meets the plane dot(n, X) = d (n faces the camera, so dot(n, r) < 0).
+float ray_plane_t(vec3 r, vec3 n, float d) {
+    return d / min(dot(n, r), -1e-3);
+}
+
+// The plane offset d of a plane with normal n whose depth on the ray through image point p is `depth`.
+float plane_d(vec3 n, vec2 p, float depth) {
+    return dot(n, ray_dir(p) * (depth / u_near));
+}
+
+// View depth (-z) of the point at distance t along the ray through p.
+float depth_along(vec2 p, float t) {
+    vec3 dir = ray_dir(p);
+    return t * u_near / length(dir);
+}
+
+// Keep a normal within max_angle of the direction back to the camera (avoids near-grazing quads).
+vec3 limit_grazing(vec3 n, vec3 to_camera, float max_angle) {
+    float c = dot(n, to_camera);
+    float cmax = cos(max_angle);
+    if (c >= cmax) return n;
+    vec3 side = n - c * to_camera;
+    float ls = length(side);
+    if (ls < 1e-6) return to_camera;
+    return normalize(side / ls * sin(max_angle) + to_camera * cmax);
+}

@@ -1,0 +1,105 @@
+"""The server's G-buffers for one frame (QUASAR §3.1, §3.3): the visible layer, k-1 hidden layers by Effective
+Depth Peeling for a view sphere of radius r, and a wide-FOV view; plus the video atlas they are packed into."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import moderngl
+import numpy as np
+
+from render.camera import Camera, Frustum
+from render.gl import program, set_uniforms
+from render.renderer import GBuffer, DeferredRenderer, read_texture
+
+HERE = Path(__file__).resolve().parent
+RENDER_DIR = HERE.parent / "render"
+
+
+def wide_camera(camera: Camera, fovy_deg: float = 120.0, scale: float = 0.5) -> Camera:
+    """The wide-FOV view at the same pose: `fovy_deg` vertical field of view, `scale` of the resolution."""
+    w, h = max(2, int(round(camera.width * scale / 2)) * 2), max(2, int(round(camera.height * scale / 2)) * 2)
+    f = Frustum.symmetric(fovy_deg, camera.frustum.aspect, camera.frustum.near, camera.frustum.far)
+    return Camera(camera.pose, f, w, h)
+
+
+class LayerRenderer:
+    """Renders the visible layer and the EDP hidden layers into pre-allocated G-buffers."""
+
+    def __init__(self, renderer: DeferredRenderer, width: int, height: int, layers: int = 4):
+        if layers < 1:
+            raise ValueError(f"need at least 1 layer, got {layers}")
+        self.renderer, self.ctx = renderer, renderer.ctx
+        self.gbuffers = [GBuffer(self.ctx, width, height) for _ in range(layers)]
+        self.peel = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl")
+
+    def render(self, camera: Camera, t: float, viewcell_radius: float, connectivity: float = 0.001,
+               max_radius_px: int = 48) -> list[GBuffer]:
+        r = self.renderer
+        layers = [r.gbuffer(camera, t, target=self.gbuffers[0])]
+        f = camera.frustum
+        focal_px = camera.height / ((f.top - f.bottom) / f.near)
+        for gb in self.gbuffers[1:]:
+            layers[-1].position.use(4)
+            layers[0].position.use(5)
+            set_uniforms(self.peel, u_prev_position=4, u_visible_position=5, u_focal_px=focal_px,
+                         u_viewcell_radius=float(viewcell_radius), u_connectivity=float(connectivity),
+                         u_max_radius_px=int(max_radius_px))
+            r.geometry_pass(camera, t, target=gb, prog=self.peel)
+            r.lighting_pass(gb, t)
+            layers.append(gb)
+        return layers
+
+
+@dataclass(frozen=True)
+class AtlasLayout:
+    """Where each layer's colour goes in the video frame: the reference view and the new view at full size side by
+    side, then the hidden layers and the wide FOV at reduced size in a row below (QUASAR §3.4.1, linear packing)."""
+
+    width: int
+    height: int
+    reference: tuple[int, int, int, int]
+    current: tuple[int, int, int, int]
+    hidden: tuple[tuple[int, int, int, int], ...]
+    wide: tuple[int, int, int, int]
+
+    @classmethod
+    def for_view(cls, width: int, height: int, hidden_layers: int, wide_size: tuple[int, int],
+                 hidden_scale: float = 0.5) -> "AtlasLayout":
+        hw, hh = max(2, int(width * hidden_scale)), max(2, int(height * hidden_scale))
+        hidden = tuple((i * hw, height, hw, hh) for i in range(hidden_layers))
+        wide = (hidden_layers * hw, height, *wide_size)
+        aw = max(2 * width, wide[0] + wide[2])
+        ah = height + max(hh if hidden_layers else 0, wide[3])
+        return cls(aw + aw % 2, ah + ah % 2, (0, 0, width, height), (width, 0, width, height), hidden, wide)
+
+
+class AtlasComposer:
+    """Draws layer colour textures into one atlas framebuffer and reads it back for the video encoder."""
+
+    def __init__(self, ctx: moderngl.Context, layout: AtlasLayout):
+        self.ctx, self.layout = ctx, layout
+        self.texture = ctx.texture((layout.width, layout.height), 4)
+        self.fbo = ctx.framebuffer([self.texture])
+        self.prog = program(ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "atlas.frag.glsl")
+        self.vao = ctx.vertex_array(self.prog, [])
+
+    def clear(self) -> None:
+        self.fbo.use()
+        self.fbo.viewport = (0, 0, self.layout.width, self.layout.height)
+        self.fbo.clear(0.0, 0.0, 0.0, 1.0)
+
+    def draw(self, color: moderngl.Texture, rect: tuple[int, int, int, int]) -> None:
+        x, y, w, h = rect
+        self.fbo.use()
+        self.fbo.viewport = (x, self.layout.height - y - h, w, h)  # rects are top-left based; GL is bottom-left
+        self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)
+        color.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        color.use(0)
+        set_uniforms(self.prog, u_layer=0)
+        self.vao.render(moderngl.TRIANGLES, vertices=3)
+        color.filter = (moderngl.NEAREST, moderngl.NEAREST)
+
+    def read(self) -> np.ndarray:
+        self.fbo.viewport = (0, 0, self.layout.width, self.layout.height)
+        return np.ascontiguousarray(read_texture(self.texture, 4, "u1")[..., :3])

@@ -1,0 +1,42 @@
+#version 430
+// Effective Depth Peeling (QUASAR 3.3, after Kim & Lee 2023): the next hidden layer keeps, per pixel, the
+// nearest fragment behind the previous layer that could become visible from somewhere inside the view sphere.
+// A fragment at depth z behind the visible surface at depth z0 shifts against it by up to
+// f * r * (1/z0 - 1/z) pixels when the eye moves by r; it is potentially visible if, within that radius, the
+// visible layer is farther than the fragment (an edge it can appear from behind).
+#include "material.glsl"
+
+uniform sampler2D u_prev_position;     // previous layer's view positions (w > 0 where geometry)
+uniform sampler2D u_visible_position;  // the visible layer's
+uniform float u_focal_px;              // pixels per unit of x/z
+uniform float u_viewcell_radius;       // metres
+uniform float u_connectivity;          // relative depth gap that still counts as the same surface
+uniform int u_max_radius_px;
+
+float visible_depth(ivec2 p) {
+    vec4 v = texelFetch(u_visible_position, clamp(p, ivec2(0), textureSize(u_visible_position, 0) - 1), 0);
+    return v.w > 0.0 ? -v.z : 1e30;
+}
+
+void main() {
+    ivec2 px = ivec2(gl_FragCoord.xy);
+    float z = -v_view_pos.z;
+    vec4 prev = texelFetch(u_prev_position, px, 0);
+    if (prev.w <= 0.0) discard;                              // nothing in front: nothing hidden here
+    if (z <= -prev.z * (1.0 + u_connectivity)) discard;      // already peeled, or the same surface
+    float z0 = visible_depth(px);
+    float radius = u_focal_px * u_viewcell_radius * (1.0 / min(z0, z) - 1.0 / z);
+    radius = min(radius, float(u_max_radius_px));
+    if (radius < 0.5) discard;
+    bool potentially_visible = false;
+    for (int ring = 1; ring <= 3 && !potentially_visible; ++ring) {
+        float rr = radius * float(ring) / 3.0;
+        for (int k = 0; k < 8; ++k) {
+            float a = 0.7853982 * float(k) + 0.3926991 * float(ring & 1);
+            ivec2 q = px + ivec2(round(rr * vec2(cos(a), sin(a))));
+            if (visible_depth(q) >= z * (1.0 - u_connectivity)) { potentially_visible = true; break; }
+        }
+    }
+    if (!potentially_visible) discard;
+    write_gbuffer();
+}

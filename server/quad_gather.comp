@@ -1,0 +1,34 @@
+#version 430
+// Gathering (QUASAR 3.2.3): append every valid entry of one Quad Map to the output list.
+layout(local_size_x = 8, local_size_y = 8) in;
+#include "quad.glsl"
+#include "quad_entry.glsl"
+
+struct GatheredQuad {     // the layout render/quadmesh.py's quads_to_gpu writes
+    uvec4 head;           // x, y, size_log2, flattened
+    vec4 normal_depth;
+    vec4 off[4];
+};
+layout(std430, binding = 0) readonly buffer QuadMap { QuadEntry quads[]; };
+layout(std430, binding = 1) buffer Counter { uint count; };
+layout(std430, binding = 2) writeonly buffer Gathered { GatheredQuad gathered[]; };
+uniform ivec2 u_map_size;
+uniform int u_level;
+uniform uint u_capacity;
+uniform float u_delta_flatten;
+
+void main() {
+    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
+    if (any(greaterThanEqual(p, u_map_size))) return;
+    QuadEntry e = quads[p.y * u_map_size.x + p.x];
+    if (e.plane.w <= 0.0) return;
+    uint i = atomicAdd(count, 1u);
+    if (i >= u_capacity) return;
+    vec4 m = max(max(abs(e.off[0]), abs(e.off[1])), max(abs(e.off[2]), abs(e.off[3])));
+    bool flattened = max(max(m.x, m.y), max(m.z, m.w)) < u_delta_flatten;
+    GatheredQuad g;
+    g.head = uvec4(uvec2(p << u_level), uint(u_level), flattened ? 1u : 0u);
+    g.normal_depth = e.plane;
+    for (int s = 0; s < 4; ++s) g.off[s] = flattened ? vec4(0.0) : e.off[s];
+    gathered[i] = g;
+}

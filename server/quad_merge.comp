@@ -1,0 +1,84 @@
+#version 430
+// Quad merging (QUASAR 3.2.2): 2x2 quads of Quad Map l become one quad of map l+1 when their planes are similar
+// (plane-equation distance < delta_sim), or, in the first coarse passes, when they have no depth discontinuity
+// (normalised centre depths within delta_max). Merged children are cleared; unmerged ones mark their parent so
+// no larger quad covers them. Offsets are recomputed against the averaged plane from the children's corners.
+layout(local_size_x = 8, local_size_y = 8) in;
+#include "quad.glsl"
+#include "quad_entry.glsl"
+
+layout(std430, binding = 0) buffer QuadMapIn { QuadEntry qin[]; };
+layout(std430, binding = 1) writeonly buffer QuadMapOut { QuadEntry qout[]; };
+uniform ivec2 u_in_size;
+uniform ivec2 u_out_size;
+uniform int u_out_level;       // output quads span 2^u_out_level pixels
+uniform bool u_coarse;
+uniform float u_delta_sim;
+uniform float u_delta_max;
+uniform float u_max_angle;
+
+void main() {
+    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
+    if (any(greaterThanEqual(p, u_out_size))) return;
+    uint out_index = uint(p.y * u_out_size.x + p.x);
+    QuadEntry m;
+    m.plane = vec4(0.0, 0.0, 0.0, EMPTY);
+    for (int s = 0; s < 4; ++s) m.off[s] = vec4(0.0);
+
+    QuadEntry child[4];
+    uint child_index[4];
+    int valid = 0, empty = 0;
+    float child_size = float(1 << (u_out_level - 1));
+    for (int c = 0; c < 4; ++c) {
+        ivec2 q = 2 * p + ivec2(c & 1, c >> 1);
+        if (any(greaterThanEqual(q, u_in_size))) { empty++; child[c].plane = vec4(0.0); continue; }
+        child_index[c] = uint(q.y * u_in_size.x + q.x);
+        child[c] = qin[child_index[c]];
+        if (child[c].plane.w > 0.0) valid++;
+        else if (child[c].plane.w == EMPTY) empty++;
+    }
+    if (empty == 4) { qout[out_index] = m; return; }
+    m.plane.w = MARKED;
+    if (valid < 4) { qout[out_index] = m; return; }
+
+    // Plane equations (n, d) of the children, their centre depths.
+    vec4 eq[4];
+    float z[4];
+    for (int c = 0; c < 4; ++c) {
+        vec2 centre = (vec2(2 * p + ivec2(c & 1, c >> 1)) + 0.5) * child_size;
+        eq[c] = vec4(child[c].plane.xyz, plane_d(child[c].plane.xyz, centre, child[c].plane.w));
+        z[c] = normalized_depth(child[c].plane.w);
+    }
+    bool similar = true, continuous = true;
+    for (int a = 0; a < 4; ++a) for (int b = a + 1; b < 4; ++b) {
+        similar = similar && distance(eq[a], eq[b]) < u_delta_sim;
+        continuous = continuous && abs(z[a] - z[b]) < u_delta_max;
+    }
+    if (!(similar || (u_coarse && continuous))) { qout[out_index] = m; return; }
+
+    vec4 avg = (eq[0] + eq[1] + eq[2] + eq[3]) * 0.25;
+    float len_n = length(avg.xyz);
+    if (len_n < 1e-3) { qout[out_index] = m; return; }
+    vec3 n = avg.xyz / len_n;
+    float d = avg.w / len_n;
+    float size = child_size * 2.0;
+    vec2 origin = vec2(p) * size;
+    vec2 centre = origin + 0.5 * size;
+    vec3 rc = normalize(ray_dir(centre));
+    n = limit_grazing(n, -rc, u_max_angle);
+    float t_centre = ray_plane_t(rc, n, d);
+    d = dot(n, rc * t_centre);
+    // Sub-quad c of the merged quad is child c; its corner k is child c's outer corner k.
+    for (int c = 0; c < 4; ++c) {
+        vec2 child_origin = origin + child_size * vec2(c & 1, c >> 1);
+        for (int k = 0; k < 4; ++k) {
+            vec2 q = child_origin + child_size * vec2(k & 1, k >> 1);
+            vec3 r = normalize(ray_dir(q));
+            float t_surface = ray_plane_t(r, eq[c].xyz, eq[c].w) + child[c].off[k][k];
+            m.off[c][k] = t_surface - ray_plane_t(r, n, d);
+        }
+    }
+    m.plane = vec4(n, depth_along(centre, t_centre));
+    for (int c = 0; c < 4; ++c) qin[child_index[c]].plane = vec4(0.0, 0.0, 0.0, EMPTY);
+    qout[out_index] = m;
+}

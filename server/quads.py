@@ -1,0 +1,157 @@
+"""Quad generation on the GPU (QUASAR §3.2): create -> merge (m-1 passes) -> gather, for one G-buffer layer.
+
+`QuadGenerator(ctx, width, height).generate(gbuffer, camera, params, mask=None)` returns the layer's `QuadSet`
+and the milliseconds of each stage. Thresholds follow QUASAR's code: δ_max compares normalised depths
+((z - near) / (far - near)), δ_sim compares plane equations (unit normal, offset in metres), δ_flatten compares
+depth offsets (metres along the corner's ray).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import moderngl
+import numpy as np
+
+from protocol.quads import QuadSet
+from render.camera import Camera
+from render.gl import compute, set_uniforms
+from render.quadmesh import QUAD_FLOATS
+
+HERE = Path(__file__).resolve().parent
+ENTRY_BYTES = 20 * 4
+
+
+@dataclass(frozen=True)
+class QuadParams:
+    """Quad fitting and merging thresholds of one layer (QUASAR §4.1.2 defaults for the visible layer)."""
+
+    delta_max: float = 0.0005      # depth-discontinuity threshold, normalised depth
+    delta_flatten: float = 0.2     # offsets below this (m) are dropped: the quad is "flattened"
+    delta_sim: float = 0.5         # plane-equation similarity for merging
+    coarse_passes: int = 3         # first passes also merge continuous (non-similar) quads
+    max_angle_deg: float = 80.0    # normals are kept within this angle of the view ray
+    sky: bool = True               # pixels with no geometry get far, camera-facing quads (the sky's colour)
+
+    def relaxed(self, factor: float = 10.0, coarse_passes: int = 4) -> "QuadParams":
+        """Hidden layers and wide FOV: thresholds ×factor, one more coarse pass (QUASAR §4.1.2)."""
+        return replace(self, delta_flatten=self.delta_flatten * factor, delta_sim=self.delta_sim * factor,
+                       coarse_passes=coarse_passes, sky=False)
+
+
+@dataclass
+class QuadTimings:
+    quads: float = 0.0
+    merge: float = 0.0
+    gather: float = 0.0
+
+    def add(self, other: "QuadTimings") -> None:
+        self.quads += other.quads
+        self.merge += other.merge
+        self.gather += other.gather
+
+
+def quad_map_levels(width: int, height: int) -> int:
+    """m = floor(log2(min(w, h))) + 1 Quad Maps (QUASAR §3.2), capped at the 80-bit format's 2^11 quads."""
+    return min(int(math.floor(math.log2(min(width, height)))) + 1, 12)
+
+
+class QuadGenerator:
+    """Pre-allocated Quad Maps for one layer size, and the three compute stages."""
+
+    def __init__(self, ctx: moderngl.Context, width: int, height: int):
+        self.ctx, self.width, self.height = ctx, width, height
+        self.levels = quad_map_levels(width, height)
+        self.sizes = [(-(-width // (1 << l)), -(-height // (1 << l))) for l in range(self.levels)]
+        self.maps = [ctx.buffer(reserve=w * h * ENTRY_BYTES) for w, h in self.sizes]
+        self.capacity = width * height
+        self.counter = ctx.buffer(reserve=4)
+        self.gathered = ctx.buffer(reserve=self.capacity * QUAD_FLOATS * 4)
+        self.create = compute(ctx, HERE / "quad_create.comp")
+        self.merge = compute(ctx, HERE / "quad_merge.comp")
+        self.gather = compute(ctx, HERE / "quad_gather.comp")
+        self._empty_mask = ctx.texture((1, 1), 1, b"\x01", dtype="u1")
+
+    def _camera_uniforms(self, prog, camera: Camera) -> None:
+        f = camera.frustum
+        set_uniforms(prog, u_frustum=(f.left, f.right, f.bottom, f.top), u_near=f.near, u_far=f.far,
+                     u_size=(self.width, self.height))
+
+    def generate(self, position: moderngl.Texture, normal: moderngl.Texture, camera: Camera, params: QuadParams,
+                 mask: moderngl.Texture | None = None, inner: Camera | None = None) -> tuple[QuadSet, QuadTimings]:
+        """Quads for the G-buffer textures `position`/`normal` seen by `camera`. Only pixels where `mask` (a
+        uint8 texture, GL row order) is non-zero; with `inner`, only pixels outside that camera's frustum."""
+        if (camera.width, camera.height) != (self.width, self.height):
+            raise ValueError(f"QuadGenerator is for {self.width}x{self.height}, camera is "
+                             f"{camera.width}x{camera.height}")
+        ctx, timings = self.ctx, QuadTimings()
+        max_angle = math.radians(params.max_angle_deg)
+
+        t0 = time.perf_counter()
+        prog = self.create
+        self._camera_uniforms(prog, camera)
+        position.use(0)
+        normal.use(1)
+        (mask or self._empty_mask).use(2)
+        fi = inner.frustum if inner is not None else None
+        set_uniforms(prog, u_position=0, u_normal=1, u_mask=2, u_use_mask=mask is not None,
+                     u_exclude_inner=inner is not None,
+                     u_inner_frustum=(fi.left / fi.near, fi.right / fi.near, fi.bottom / fi.near, fi.top / fi.near)
+                     if fi else (0.0, 0.0, 0.0, 0.0),
+                     u_delta_max=params.delta_max, u_max_angle=max_angle,
+                     u_sky_distance=camera.frustum.far * 0.9 if params.sky else 0.0)
+        self.maps[0].bind_to_storage_buffer(0)
+        prog.run((self.width + 7) // 8, (self.height + 7) // 8)
+        ctx.memory_barrier()
+        ctx.finish()
+        t1 = time.perf_counter()
+
+        prog = self.merge
+        self._camera_uniforms(prog, camera)
+        for level in range(1, self.levels):
+            (iw, ih), (ow, oh) = self.sizes[level - 1], self.sizes[level]
+            self.maps[level - 1].bind_to_storage_buffer(0)
+            self.maps[level].bind_to_storage_buffer(1)
+            set_uniforms(prog, u_in_size=(iw, ih), u_out_size=(ow, oh), u_out_level=level,
+                         u_coarse=level <= params.coarse_passes, u_delta_sim=params.delta_sim,
+                         u_delta_max=params.delta_max, u_max_angle=max_angle)
+            prog.run((ow + 7) // 8, (oh + 7) // 8)
+            ctx.memory_barrier()
+        ctx.finish()
+        t2 = time.perf_counter()
+
+        prog = self.gather
+        self._camera_uniforms(prog, camera)
+        self.counter.write(np.zeros(1, np.uint32).tobytes())
+        self.counter.bind_to_storage_buffer(1)
+        self.gathered.bind_to_storage_buffer(2)
+        for level in range(self.levels):
+            w, h = self.sizes[level]
+            self.maps[level].bind_to_storage_buffer(0)
+            set_uniforms(prog, u_map_size=(w, h), u_level=level, u_capacity=self.capacity,
+                         u_delta_flatten=params.delta_flatten)
+            prog.run((w + 7) // 8, (h + 7) // 8)
+            ctx.memory_barrier()
+        count = min(int(np.frombuffer(self.counter.read(), np.uint32)[0]), self.capacity)
+        rows = np.frombuffer(self.gathered.read(size=count * QUAD_FLOATS * 4), np.float32).reshape(count,
+                                                                                                     QUAD_FLOATS)
+        quads = gathered_to_quadset(rows)
+        t3 = time.perf_counter()
+        timings.quads, timings.merge, timings.gather = (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3
+        return quads, timings
+
+
+def gathered_to_quadset(rows: np.ndarray) -> QuadSet:
+    """Gathered GPU rows -> QuadSet, in a deterministic order (by size, then y, then x)."""
+    head = rows[:, :4].view(np.uint32)
+    order = np.lexsort((head[:, 0], head[:, 1], head[:, 2]))
+    rows, head = rows[order], head[order]
+    flattened = head[:, 3] != 0
+    normal = rows[:, 4:7].astype(np.float64)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    return QuadSet(x=head[:, 0].astype(np.uint16), y=head[:, 1].astype(np.uint16),
+                   size_log2=head[:, 2].astype(np.uint8), flattened=flattened,
+                   alpha=np.zeros(len(rows), bool), normal=normal.astype(np.float32),
+                   depth=rows[:, 7].astype(np.float32), offsets=rows[~flattened, 8:24].astype(np.float16))

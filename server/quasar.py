@@ -1,0 +1,209 @@
+"""QUASAR's server (§3): per frame, layered G-buffers for the predicted pose, quads for every layer, reference or
+residual frames (§3.5), the colour atlas as H.264 and the quads as a columnar zstd blob."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import moderngl
+import numpy as np
+from scipy.ndimage import binary_dilation, binary_opening
+
+from protocol.frame import FramePayload, Method, PayloadType
+from protocol.quads import FrameType, LayerKind, QuadFrame, QuadLayer, QuadSet, encode_quad_frame, \
+    packed_size_bits_per_quad
+from render.camera import Camera, Pose
+from render.quadcache import QuadCache
+from render.quadmesh import MeshLayer, MeshView, QuadMesh
+from render.renderer import DeferredRenderer, GBuffer
+from server.layers import AtlasComposer, AtlasLayout, LayerRenderer, wide_camera
+from server.method import MethodServer
+from server.quads import QuadGenerator, QuadParams, QuadTimings
+from server.video import AtlasEncoder, VideoSettings
+
+
+@dataclass
+class QuasarSettings:
+    width: int = 960
+    height: int = 540
+    fovy_deg: float = 60.0
+    layers: int = 4                      # k: the visible layer + k-1 hidden layers
+    viewcell_radius: float = 0.5         # metres
+    reference_every: int = 5             # a reference frame every K frames ...
+    reference_distance: float = 0.5      # ... or when the pose moved this far (m) ...
+    reference_angle_deg: float = 15.0    # ... or turned this much since the reference
+    visible: QuadParams = field(default_factory=QuadParams)
+    hidden: QuadParams = field(default_factory=lambda: QuadParams().relaxed())
+    wide_fovy_deg: float = 120.0
+    wide_scale: float = 0.5
+    hidden_scale: float = 0.5
+    connectivity: float = 0.001          # EDP: relative depth gap that is still the same surface
+    change_threshold: float = 0.01       # relative depth change that makes a reference pixel "updated"
+    zstd_level: int = 3
+    video: VideoSettings = field(default_factory=VideoSettings)
+
+    def __post_init__(self):
+        if self.width % 2 or self.height % 2 or self.width < 16 or self.height < 16:
+            raise ValueError(f"size must be even and at least 16x16, got {self.width}x{self.height}")
+        if not self.viewcell_radius >= 0:
+            raise ValueError(f"viewcell radius must be >= 0 m, got {self.viewcell_radius}")
+        if self.reference_every < 1:
+            raise ValueError(f"reference_every must be >= 1, got {self.reference_every}")
+
+
+def _mask_texture(ctx: moderngl.Context, mask: np.ndarray) -> moderngl.Texture:
+    """A top-row-first boolean mask as a uint8 texture in GL row order."""
+    tex = ctx.texture((mask.shape[1], mask.shape[0]), 1, np.ascontiguousarray(mask[::-1], np.uint8).tobytes(),
+                      dtype="u1")
+    tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    return tex
+
+
+class QuasarServer(MethodServer):
+    name = "quasar"
+
+    def __init__(self, renderer: DeferredRenderer, settings: QuasarSettings | None = None):
+        self.s = s = settings or QuasarSettings()
+        self.renderer, self.ctx = renderer, renderer.ctx
+        self.layer_renderer = LayerRenderer(renderer, s.width, s.height, s.layers)
+        self.generator = QuadGenerator(self.ctx, s.width, s.height)
+        probe = wide_camera(self.camera_for(Pose([0, 0, 0])), s.wide_fovy_deg, s.wide_scale)
+        self.wide_generator = QuadGenerator(self.ctx, probe.width, probe.height)
+        self.wide_gbuffer = GBuffer(self.ctx, probe.width, probe.height)
+        self.reference_gbuffer = GBuffer(self.ctx, s.width, s.height)
+        self.layout = AtlasLayout.for_view(s.width, s.height, s.layers - 1, (probe.width, probe.height),
+                                           s.hidden_scale)
+        self.atlas = AtlasComposer(self.ctx, self.layout)
+        self.encoder = AtlasEncoder(self.layout.width, self.layout.height, s.video)
+        self.cache = QuadCache(s.width, s.height)
+        self.mesh = QuadMesh(self.ctx)
+        self.mesh_view = MeshView(self.ctx, s.width, s.height)
+        self.frame_id = 0
+        self.reference_id = -1
+        self.reference_camera: Camera | None = None
+        self.reference_depth: np.ndarray | None = None
+        self.reference_ids: np.ndarray | None = None
+        self.frames_since_reference = 0
+        self._force_reference = True
+
+    def camera_for(self, pose: Pose) -> Camera:
+        return Camera.perspective(pose, self.s.width, self.s.height, self.s.fovy_deg)
+
+    def request_reference(self) -> None:
+        self._force_reference = True
+
+    def _needs_reference(self, camera: Camera) -> bool:
+        ref = self.reference_camera
+        return (self._force_reference or ref is None or self.frames_since_reference >= self.s.reference_every
+                or camera.pose.distance_to(ref.pose) > self.s.reference_distance
+                or camera.pose.angle_to_deg(ref.pose) > self.s.reference_angle_deg)
+
+    def encode(self, pose: Pose, t: float) -> FramePayload:
+        s, ctx = self.s, self.ctx
+        ms: dict[str, float] = {}
+        timings = QuadTimings()
+        camera = self.camera_for(pose)
+        is_reference = self._needs_reference(camera)
+
+        t0 = time.perf_counter()
+        gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity)
+        wide_cam = wide_camera(camera, s.wide_fovy_deg, s.wide_scale)
+        wide_gb = self.renderer.gbuffer(wide_cam, t, target=self.wide_gbuffer)
+        ref_gb = None
+        if not is_reference:
+            ref_gb = self.renderer.gbuffer(self.reference_camera, t, target=self.reference_gbuffer)
+        ctx.finish()
+        ms["gbuffers"] = (time.perf_counter() - t0) * 1e3
+
+        def quads(gb, cam, params, mask=None, generator=None, inner=None):
+            mask_tex = _mask_texture(ctx, mask) if mask is not None else None
+            q, tm = (generator or self.generator).generate(gb.position, gb.normal, cam, params, mask_tex, inner)
+            timings.add(tm)
+            if mask_tex is not None:
+                mask_tex.release()
+            return q
+
+        L = self.layout
+        cam_floats = camera.to_array()
+        layers: list[QuadLayer] = []
+        if is_reference:
+            visible = quads(gbs[0], camera, s.visible)
+            layers.append(QuadLayer(LayerKind.VISIBLE, s.width, s.height, cam_floats, L.reference, visible))
+            self.cache.reset(visible)
+            self.reference_camera = camera
+            self.reference_depth = gbs[0].read_depth()
+            self.reference_ids = gbs[0].read_object_id()
+            self.reference_id = self.frame_id
+            self.frames_since_reference = 0
+            self._force_reference = False
+        else:
+            ref_cam = self.reference_camera
+            # Geometry that changed in the reference view since it was cached (§3.5.2).
+            depth_now, ids_now = ref_gb.read_depth(), ref_gb.read_object_id()
+            with np.errstate(invalid="ignore"):
+                changed = (ids_now != self.reference_ids) | ~(
+                    np.abs(depth_now - self.reference_depth) <= s.change_threshold * np.minimum(depth_now,
+                                                                                                self.reference_depth))
+            changed &= ~(np.isinf(depth_now) & np.isinf(self.reference_depth))
+            updated = quads(ref_gb, ref_cam, s.visible, mask=changed) if changed.any() else QuadSet.empty()
+            self.cache.update(updated)
+            self.reference_depth[changed] = depth_now[changed]
+            self.reference_ids[changed] = ids_now[changed]
+            # Geometry revealed at the new pose: not covered by the cached mesh (§3.5.1), 1-pixel expansion.
+            self.mesh.build([MeshLayer(self.cache.quads, ref_cam, L.reference)], (L.width, L.height))
+            self.mesh_view.render(self.mesh, camera, self.atlas.texture)
+            mesh_depth = self.mesh_view.read_depth()
+            depth = gbs[0].read_depth()
+            with np.errstate(invalid="ignore"):
+                revealed = np.isinf(mesh_depth) | (depth < mesh_depth * (1 - s.change_threshold))
+            # Slivers one pixel wide are sub-pixel misalignment of silhouettes, not disocclusions: open them away,
+            # then expand the rest by one pixel (the residual quads are not pixel-aligned with the reference).
+            revealed = binary_dilation(binary_opening(revealed, np.ones((2, 2), bool)), iterations=1)
+            rev = quads(gbs[0], camera, s.visible, mask=revealed) if revealed.any() else QuadSet.empty()
+            layers.append(QuadLayer(LayerKind.UPDATED, s.width, s.height, ref_cam.to_array(), L.reference, updated))
+            layers.append(QuadLayer(LayerKind.REVEALED, s.width, s.height, cam_floats, L.current, rev))
+            self.frames_since_reference += 1
+        for gb, rect in zip(gbs[1:], L.hidden):
+            layers.append(QuadLayer(LayerKind.HIDDEN, s.width, s.height, cam_floats, rect,
+                                    quads(gb, camera, s.hidden)))
+        wide = quads(wide_gb, wide_cam, s.hidden, generator=self.wide_generator, inner=camera)
+        layers.append(QuadLayer(LayerKind.WIDE, wide_cam.width, wide_cam.height, wide_cam.to_array(), L.wide, wide))
+        ms.update(quads=timings.quads, merge=timings.merge, gather=timings.gather)
+
+        t0 = time.perf_counter()
+        qframe = QuadFrame(self.frame_id, FrameType.REFERENCE if is_reference else FrameType.RESIDUAL,
+                           self.reference_id, layers)
+        geometry = encode_quad_frame(qframe, s.zstd_level)
+        ms["zstd"] = (time.perf_counter() - t0) * 1e3
+
+        t0 = time.perf_counter()
+        self.atlas.clear()
+        self.atlas.draw((gbs[0] if is_reference else ref_gb).color, L.reference)
+        if not is_reference:
+            self.atlas.draw(gbs[0].color, L.current)
+        for gb, rect in zip(gbs[1:], L.hidden):
+            self.atlas.draw(gb.color, rect)
+        self.atlas.draw(wide_gb.color, L.wide)
+        video = self.encoder.encode(self.atlas.read(), keyframe=is_reference)
+        ms["video"] = (time.perf_counter() - t0) * 1e3
+
+        counts = [len(l.quads) for l in layers]
+        stats = {
+            "type": "reference" if is_reference else "residual",
+            "quads": int(sum(counts)),
+            "quads_per_layer": {f"{i}:{l.kind.name.lower()}": n for i, (l, n) in enumerate(zip(layers, counts))},
+            "offsets": int(qframe.offset_count),
+            "bytes_quads": len(geometry),
+            "bytes_video": len(video.data),
+            "bits_per_quad_raw": packed_size_bits_per_quad(qframe) if qframe.quad_count else 0.0,
+            "cache_quads": len(self.cache),
+            "ms": ms,
+        }
+        payload = FramePayload(Method.QUASAR, self.frame_id,
+                               PayloadType.REFERENCE if is_reference else PayloadType.RESIDUAL, self.reference_id,
+                               float(t), camera.pose.position, camera.pose.quat, video.data, geometry, stats)
+        self.frame_id += 1
+        return payload
+
+    def close(self) -> None:
+        self.encoder.close()

@@ -1,0 +1,245 @@
+"""Tests for protocol.messages: the sans-I/O live wire protocol (typed messages + incremental decoder)."""
+
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from protocol.errors import ProtocolError
+from protocol.frame import FramePayload, Method, PayloadType
+from protocol.messages import (
+    PROTOCOL_VERSION,
+    Bye,
+    ErrorCode,
+    ErrorMessage,
+    Frame,
+    Hello,
+    MessageDecoder,
+    MessageSplitter,
+    MessageType,
+    PoseUpdate,
+    ReferenceRequest,
+    Welcome,
+    decode_message_body,
+    encode_message,
+)
+
+# -- strategies --------------------------------------------------------------
+
+finite = st.floats(allow_nan=False, allow_infinity=False)
+text = st.text(max_size=40)
+u16 = st.integers(0, 0xFFFF)
+
+hellos = st.builds(Hello, version=u16, method=text, width=st.integers(1, 2**32 - 1),
+                   height=st.integers(1, 2**32 - 1),
+                   fovy_deg=st.floats(0.0, 180.0, exclude_min=True, exclude_max=True), token=text)
+welcomes = st.builds(Welcome, session_id=st.integers(0, 2**64 - 1),
+                     server_hz=st.floats(0.0, 1e6, exclude_min=True))
+quats = st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda q: sum(v * v for v in q) > 1e-6)
+poses = st.builds(PoseUpdate, seq=st.integers(0, 2**64 - 1), t_client=finite,
+                  position=st.lists(finite, min_size=3, max_size=3), quat=quats)
+frames = st.builds(Frame, payload=st.binary(max_size=300))
+refreqs = st.builds(ReferenceRequest, reason=text)
+errors = st.builds(ErrorMessage, code=u16, text=text)
+messages = st.one_of(hellos, welcomes, poses, frames, refreqs, errors, st.just(Bye()))
+
+
+def _raw(mtype: int, body: bytes) -> bytes:
+    return struct.pack("<IB", 1 + len(body), mtype) + body
+
+
+# -- round trips -------------------------------------------------------------
+
+
+@settings(max_examples=300, deadline=None)
+@given(msg=messages)
+def test_every_message_round_trips(msg):
+    wire = encode_message(msg)
+    assert struct.unpack_from("<I", wire)[0] == len(wire) - 4
+    assert wire[4] == int({Hello: MessageType.HELLO, Welcome: MessageType.WELCOME,
+                           PoseUpdate: MessageType.POSE_UPDATE, Frame: MessageType.FRAME,
+                           ReferenceRequest: MessageType.REFERENCE_REQUEST, ErrorMessage: MessageType.ERROR,
+                           Bye: MessageType.BYE}[type(msg)])
+    out = MessageDecoder().feed(wire)
+    assert out == [msg]
+    assert type(out[0]) is type(msg)
+
+
+@settings(max_examples=100, deadline=None)
+@given(msgs=st.lists(messages, max_size=8), cuts=st.lists(st.integers(0, 10_000), max_size=12))
+def test_arbitrary_chunking_gives_the_same_messages(msgs, cuts):
+    wire = b"".join(encode_message(m) for m in msgs)
+    bounds = sorted({0, len(wire), *(c % (len(wire) + 1) for c in cuts)})
+    dec = MessageDecoder()
+    out = []
+    for a, b in zip(bounds, bounds[1:]):
+        out += dec.feed(wire[a:b])
+    assert out == msgs
+    assert dec.buffered == 0 and not dec.failed
+
+
+def test_one_byte_at_a_time():
+    msgs = [Hello(PROTOCOL_VERSION, "quasar", 320, 180, 60.0, token="sésame"), Welcome(42, 30.0),
+            PoseUpdate(0, 0.5, [1, 2, 3], [0, 0, 0, 1]), Frame(b"\x00" * 1000), ReferenceRequest("lost"),
+            ErrorMessage(ErrorCode.UNKNOWN_METHOD, "no such method"), Bye()]
+    wire = b"".join(encode_message(m) for m in msgs)
+    dec = MessageDecoder()
+    out = []
+    for i in range(len(wire)):
+        got = dec.feed(wire[i:i + 1])
+        out += got
+        assert dec.buffered <= max(len(encode_message(m)) for m in msgs)
+    assert out == msgs
+    assert dec.feed(b"") == []
+
+
+def test_frame_wraps_a_frame_payload():
+    p = FramePayload(Method.QUASAR, 5, PayloadType.RESIDUAL, 4, 1.25, np.array([1.0, 2.0, 3.0]),
+                     np.array([0.0, 0.0, 0.0, 1.0]), video=b"h264" * 10, geometry=b"quads")
+    (msg,) = MessageDecoder().feed(encode_message(Frame.from_payload(p)))
+    q = msg.decode()
+    assert (q.method, q.frame_id, q.frame_type, q.reference_id, q.t) == (Method.QUASAR, 5, PayloadType.RESIDUAL, 4, 1.25)
+    assert q.video == p.video and q.geometry == p.geometry
+    np.testing.assert_array_equal(q.position, p.position)
+    with pytest.raises(ProtocolError, match="truncated"):
+        Frame(b"junk").decode()
+
+
+def test_pose_update_from_pose_and_readonly_arrays():
+    class P:
+        position = np.array([1.0, 2.0, 3.0])
+        quat = np.array([0.0, 0.0, 0.0, 2.0])
+
+    m = PoseUpdate.from_pose(3, 0.1, P())
+    assert m.quat.tolist() == [0.0, 0.0, 0.0, 2.0]  # sent as given, not normalized
+    with pytest.raises(ValueError):
+        m.position[0] = 5.0
+
+
+# -- construction errors -----------------------------------------------------
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: Hello(1, "quasar", 0, 180, 60.0), "Hello.width"),
+    (lambda: Hello(1, "quasar", 320, 180, 180.0), "Hello.fovy_deg"),
+    (lambda: Hello(70000, "quasar", 320, 180, 60.0), "Hello.version"),
+    (lambda: Hello(1, "x" * 70000, 320, 180, 60.0), "Hello.method"),
+    (lambda: Welcome(1, float("nan")), "Welcome.server_hz"),
+    (lambda: PoseUpdate(0, 0.0, [0, 0, 0], [0, 0, 0, 0]), "PoseUpdate.quat"),
+    (lambda: PoseUpdate(0, 0.0, [0, 0], [0, 0, 0, 1]), "PoseUpdate.position"),
+    (lambda: ErrorMessage(-1, "x"), "ErrorMessage.code"),
+])
+def test_invalid_fields_are_rejected_on_construction(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_encode_rejects_non_messages():
+    with pytest.raises(TypeError, match="dict"):
+        encode_message({"seq": 1})
+
+
+# -- malformed input ---------------------------------------------------------
+
+
+def test_oversized_length_is_rejected_before_buffering():
+    dec = MessageDecoder(max_message_bytes=1024)
+    with pytest.raises(ProtocolError, match="1025 bytes exceeds the cap of 1024"):
+        dec.feed(struct.pack("<IB", 1025, MessageType.FRAME) + b"\x00" * 500)
+    assert dec.failed and dec.buffered == 0
+    with pytest.raises(ProtocolError, match="already failed"):
+        dec.feed(encode_message(Bye()))
+    # exactly at the cap is fine
+    ok = MessageDecoder(max_message_bytes=1024)
+    assert ok.feed(encode_message(Frame(b"\x01" * 1023))) == [Frame(b"\x01" * 1023)]
+
+
+def test_huge_declared_length_never_allocates():
+    dec = MessageDecoder()  # 64 MiB cap
+    with pytest.raises(ProtocolError, match="exceeds the cap"):
+        dec.feed(b"\xff\xff\xff\xff")
+    dec = MessageDecoder()
+    dec.feed(struct.pack("<I", 60 * 2**20) + b"\x04" + b"\x00" * 100)  # legal length, partial body
+    assert dec.buffered == 105
+
+
+def test_zero_length_is_rejected():
+    with pytest.raises(ProtocolError, match="length: 0"):
+        MessageDecoder().feed(b"\x00\x00\x00\x00")
+
+
+def test_unknown_type():
+    dec = MessageDecoder()
+    with pytest.raises(ProtocolError, match="unknown code 99"):
+        dec.feed(_raw(99, b"abc"))
+    assert dec.failed
+    with pytest.raises(ProtocolError, match="unknown code 0"):
+        decode_message_body(0, b"")
+
+
+@pytest.mark.parametrize("mtype, body, match", [
+    (MessageType.WELCOME, struct.pack("<Qd", 1, 30.0)[:-1], "Welcome: body truncated"),
+    (MessageType.WELCOME, struct.pack("<Qd", 1, 30.0) + b"x", "Welcome: 1 unexpected trailing"),
+    (MessageType.WELCOME, struct.pack("<Qd", 1, float("inf")), "Welcome.server_hz: expected a finite"),
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, 0.0, 0, 0, 0, 0, 0, 0, 0), "PoseUpdate.quat: expected a non-zero"),
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, 0.0, float("nan"), 0, 0, 0, 0, 0, 1), "PoseUpdate.position"),
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, float("-inf"), 0, 0, 0, 0, 0, 0, 1), "PoseUpdate.t_client"),
+    (MessageType.HELLO, struct.pack("<HIId", 1, 320, 180, 60.0) + b"\x02\x00\xff\xfe\x00\x00",
+     "Hello.method: invalid utf-8"),
+    (MessageType.HELLO, struct.pack("<HIId", 1, 320, 180, 60.0) + b"\x09\x00abc", "Hello: method says 9 bytes"),
+    (MessageType.HELLO, struct.pack("<HIId", 1, 320, 180, 60.0) + b"\x00\x00", "Hello: body truncated reading token"),
+    (MessageType.HELLO, struct.pack("<HIId", 1, 320, 180, float("nan")) + b"\x00\x00\x00\x00", "Hello.fovy_deg"),
+    (MessageType.REFERENCE_REQUEST, b"\x01", "ReferenceRequest: body truncated"),
+    (MessageType.ERROR, b"\x01\x00\x01\x00\x80", "ErrorMessage.text: invalid utf-8"),
+    (MessageType.BYE, b"\x00", "Bye: 1 unexpected trailing"),
+])
+def test_malformed_bodies_name_the_problem(mtype, body, match):
+    dec = MessageDecoder()
+    with pytest.raises(ProtocolError, match=match):
+        dec.feed(_raw(mtype, body))
+    assert dec.failed
+
+
+@settings(max_examples=500, deadline=None)
+@given(data=st.binary(max_size=200), chunk=st.integers(1, 64))
+def test_garbage_only_ever_raises_protocol_error(data, chunk):
+    dec = MessageDecoder(max_message_bytes=4096)
+    try:
+        for i in range(0, len(data), chunk):
+            dec.feed(data[i:i + chunk])
+    except ProtocolError:
+        assert dec.failed
+    assert dec.buffered <= 4 + 4096
+
+
+@settings(max_examples=300, deadline=None)
+@given(mtype=st.integers(0, 255), body=st.binary(max_size=120))
+def test_well_framed_garbage_bodies_only_raise_protocol_error(mtype, body):
+    try:
+        out = MessageDecoder().feed(_raw(mtype, body))
+    except ProtocolError:
+        return
+    assert len(out) == 1 and encode_message(out[0]) == _raw(mtype, body)  # accepted => canonical
+
+
+@settings(max_examples=200, deadline=None)
+@given(msg=messages, pos=st.integers(0, 10_000), byte=st.integers(0, 255))
+def test_corrupted_messages_only_raise_protocol_error(msg, pos, byte):
+    wire = bytearray(encode_message(msg))
+    wire[pos % len(wire)] = byte
+    try:
+        MessageDecoder(max_message_bytes=1 << 16).feed(bytes(wire))
+    except ProtocolError:
+        pass
+
+
+def test_splitter_returns_whole_wire_messages():
+    wire = [encode_message(m) for m in (Bye(), Frame(b"abc" * 100), Welcome(1, 2.0))]
+    sp = MessageSplitter()
+    blob = b"".join(wire)
+    out = sp.feed(blob[:7]) + sp.feed(blob[7:300]) + sp.feed(blob[300:])
+    assert out == wire
+    # the splitter does not look at types or bodies
+    assert MessageSplitter().feed(_raw(200, b"??")) == [_raw(200, b"??")]
