@@ -1,6 +1,7 @@
 """The `quadcast` command line: one program, one subcommand per job.
 
     quadcast render   --scene S --trace T --size WxH --frames N [--every K] --out DIR [--depth]
+    quadcast encode   --scene S --trace T --size WxH --frames N --viewcell R [--every K] --out DIR
     quadcast bench    render [--sizes 960x540,1920x1080] [--scenes builtin:courtyard,monastery]
     quadcast demo     [--out DIR]
 
@@ -83,6 +84,66 @@ def cmd_render(args) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------------------ encode
+
+def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames: int, viewcell: float,
+                 every: int, out: Path, layers: int = 4, crf: float = 23.0, server_hz: float = 30.0,
+                 quiet: bool = False) -> dict:
+    """Run QUASAR's server along a trace (poses at `server_hz`, no network); write every frame's payload, the
+    H.264 stream and stats.json. Returns the stats."""
+    from protocol.frame import encode_frame_payload
+    from render.camera import Pose
+    from render.renderer import DeferredRenderer
+    from render.scene import load_scene
+    from server.quasar import QuasarServer, QuasarSettings
+    from server.video import VideoSettings
+    from sim.traces import resolve_trace
+
+    scene, trace = load_scene(scene_spec), resolve_trace(trace_spec)
+    if frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {frames}")
+    times = np.arange(frames) / server_hz
+    if times[-1] > trace.duration:
+        raise ValueError(f"trace {trace.name!r} lasts {trace.duration:.1f} s; {frames} frames at {server_hz:g} Hz "
+                         f"need {times[-1]:.1f} s")
+    settings = QuasarSettings(width=size[0], height=size[1], layers=layers, viewcell_radius=viewcell,
+                              reference_every=every, video=VideoSettings(crf=crf))
+    server = QuasarServer(DeferredRenderer(scene), settings)
+    out.mkdir(parents=True, exist_ok=True)
+    records = []
+    with open(out / "atlas.h264", "wb") as stream:
+        for i, t in enumerate(_progress(times, desc="encode", quiet=quiet)):
+            p, q = trace.pose_at(trace.times[0] + t)
+            payload = server.encode(Pose(p, q), float(t))
+            (out / f"frame_{i:05d}.bin").write_bytes(encode_frame_payload(payload))
+            stream.write(payload.video)
+            records.append(payload.stats)
+    server.close()
+    ref = [r["bytes_quads"] + r["bytes_video"] for r in records if r["type"] == "reference"]
+    res = [r["bytes_quads"] + r["bytes_video"] for r in records if r["type"] == "residual"]
+    total = sum(r["bytes_quads"] + r["bytes_video"] for r in records)
+    stats = {
+        "scene": scene_spec, "trace": trace_spec, "size": f"{size[0]}x{size[1]}", "viewcell_m": viewcell,
+        "layers": layers, "reference_every": every, "server_hz": server_hz, "frames": records,
+        "residual_to_reference_bytes": (float(np.mean(res)) / float(np.mean(ref))) if res and ref else None,
+        "mbps_at_30fps": total * 8 / len(records) * 30 / 1e6,
+        "mean_ms": {k: float(np.mean([r["ms"][k] for r in records])) for k in records[0]["ms"]},
+    }
+    (out / "stats.json").write_text(json.dumps(stats, indent=1))
+    return stats
+
+
+def cmd_encode(args) -> int:
+    from render.camera import parse_size
+    stats = encode_trace(args.scene, args.trace, parse_size(args.size), args.frames, args.viewcell, args.every,
+                         Path(args.out), layers=args.layers, crf=args.crf, quiet=args.quiet)
+    ratio = stats["residual_to_reference_bytes"]
+    print(f"{len(stats['frames'])} frames -> {args.out}: {stats['mbps_at_30fps']:.2f} Mbps at 30 fps, "
+          f"residual/reference bytes {ratio:.3f}" if ratio is not None else "(no residual frames)")
+    print("mean ms per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in stats["mean_ms"].items()))
+    return 0
+
+
 # ------------------------------------------------------------------------------------------------- bench
 
 def bench_render(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10) -> list[dict]:
@@ -162,6 +223,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth", action="store_true", help="also write linear depth as depth_NNNNN.npy")
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("encode", help="run the QUASAR server along a trace and write its payloads and stats")
+    p.add_argument("--scene", default="builtin:courtyard")
+    p.add_argument("--trace", default="builtin:walk")
+    p.add_argument("--size", default="960x540", help="WxH")
+    p.add_argument("--frames", type=int, default=30)
+    p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
+    p.add_argument("--every", type=int, default=5, help="a reference frame at least every K frames")
+    p.add_argument("--layers", type=int, default=4, help="k: visible + k-1 hidden layers")
+    p.add_argument("--crf", type=float, default=23.0, help="x264 constant rate factor")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_encode)
 
     p = sub.add_parser("bench", help="print speed figures (not a test)")
     p.add_argument("what", choices=["render"])

@@ -134,7 +134,7 @@ class QuasarServer(MethodServer):
             self.reference_depth = gbs[0].read_depth()
             self.reference_ids = gbs[0].read_object_id()
             self.reference_id = self.frame_id
-            self.frames_since_reference = 0
+            self.frames_since_reference = 1  # frames sent since, and including, the reference
             self._force_reference = False
         else:
             ref_cam = self.reference_camera
@@ -194,6 +194,7 @@ class QuasarServer(MethodServer):
             "quads_per_layer": {f"{i}:{l.kind.name.lower()}": n for i, (l, n) in enumerate(zip(layers, counts))},
             "offsets": int(qframe.offset_count),
             "bytes_quads": len(geometry),
+            "bytes_geometry": len(geometry),
             "bytes_video": len(video.data),
             "bits_per_quad_raw": packed_size_bits_per_quad(qframe) if qframe.quad_count else 0.0,
             "cache_quads": len(self.cache),

@@ -1,0 +1,18 @@
+#version 430
+// ATW: rotation-only reprojection of the last decoded frame to the display's current orientation.
+// u_h is the homography display NDC (x, y, 1) -> frame NDC (homogeneous): K_frame * R_frame^T * R_now * K_now^-1.
+// Directions behind the frame's camera are pushed out to its border, and clamp-to-edge sampling fills everything
+// outside the frame with the closest edge pixel in that direction.
+in vec2 v_uv;
+
+uniform sampler2D u_frame;  // decoded colour, bottom row first, linear filtering, clamp to edge
+uniform mat3 u_h;
+
+out vec4 f_color;
+
+void main() {
+    vec3 q = u_h * vec3(v_uv * 2.0 - 1.0, 1.0);
+    q.z = max(q.z, max(1e-6 * length(q.xy), 1e-30));
+    vec2 uv = q.xy / q.z * 0.5 + 0.5;
+    f_color = vec4(texture(u_frame, uv).rgb, 1.0);
+}

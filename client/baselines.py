@@ -1,0 +1,252 @@
+"""Client halves of the ATW and MeshWarp baselines (QUASAR §4.1.1-4.1.2): decode, then re-project on the GPU.
+
+`ATWClient` shows the last decoded frame re-oriented to the current head rotation (a homography in
+`atw.frag.glsl`; translation is ignored, so near objects swim). Outside the frame it repeats the closest edge pixel.
+
+`MeshWarpClient` also decodes the frame's depth (`protocol.depth`) and draws it as a grid mesh with **one vertex per
+depth pixel** (`meshwarp.vert.glsl` builds the vertices from the depth texture and `gl_VertexID`, so nothing but a
+static index buffer lives in a vertex buffer). Like QUASAR's MeshWarp, the mesh stays **connected**: triangles across
+depth discontinuities are stretched, not dropped, so disocclusions show smeared colour rather than holes; sky pixels
+are vertices at infinity. Whatever the mesh does not cover (outside the server's frustum) is filled with the ATW
+re-orientation of the frame first.
+
+Both render at the display's own size and field of view. `receive` validates everything before it changes the
+displayed state: a payload of the wrong method or with a bad pose or depth blob raises ProtocolError, undecodable
+video raises VideoError, and the last good frame keeps being shown. A non-IDR access unit while the video decoder
+waits for a keyframe changes nothing (see `needs_reference`). Before any frame `render` returns black.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import moderngl
+import numpy as np
+
+from client.method import MethodClient
+from client.video import AtlasDecoder
+from protocol.depth import DEFAULT_MAX_DEPTH_PIXELS, decode_depth
+from protocol.errors import ProtocolError
+from protocol.frame import FramePayload, Method
+from render.camera import Camera, Frustum, Pose, gl_matrix
+from render.gl import RENDER_DIR, gl_context, program, set_uniforms
+from render.renderer import read_texture
+
+__all__ = ["ATWClient", "MeshWarpClient", "rotation_homography"]
+
+HERE = Path(__file__).resolve().parent
+DISPLAY_NEAR, DISPLAY_FAR = 0.05, 1000.0  # display camera for the mesh pass (beyond the server's 100 m far plane)
+
+
+def _k(frustum: Frustum) -> np.ndarray:
+    """3x3 intrinsics: view-space direction d -> (ndc_x * w, ndc_y * w, w) with w = -d_z."""
+    p = frustum.projection_matrix()
+    return np.array([[p[0, 0], 0.0, p[0, 2]], [0.0, p[1, 1], p[1, 2]], [0.0, 0.0, -1.0]])
+
+
+def rotation_homography(frame_pose: Pose, frame_frustum: Frustum, pose: Pose, frustum: Frustum) -> np.ndarray:
+    """3x3 map from display NDC (x, y, 1) to the frame's homogeneous NDC for a rotation-only re-projection."""
+    rel = frame_pose.rotation.as_matrix().T @ pose.rotation.as_matrix()
+    return _k(frame_frustum) @ rel @ np.linalg.inv(_k(frustum))
+
+
+def _mat3(m: np.ndarray) -> bytes:
+    return np.ascontiguousarray(np.asarray(m, np.float32).T).tobytes()
+
+
+def _payload_pose(payload: FramePayload, method: Method) -> Pose:
+    if not isinstance(payload, FramePayload):
+        raise ProtocolError(f"payload: expected a FramePayload, got {type(payload).__name__}")
+    if payload.method != method:
+        raise ProtocolError(f"payload.method: expected {method.name}, got {Method(payload.method).name}")
+    try:
+        return Pose(payload.position, payload.quat)
+    except (ValueError, TypeError) as exc:
+        raise ProtocolError(f"payload pose: {exc}") from None
+
+
+@dataclass
+class _Frame:
+    """The displayed state: the last good frame's pose and its GPU textures."""
+
+    pose: Pose
+    width: int
+    height: int
+    frame_id: int
+
+
+class _BaselineClient(MethodClient):
+    """Shared part: video decoder, decoded-frame texture, the display framebuffer and the ATW warp pass."""
+
+    method: Method
+
+    def __init__(self, width: int, height: int, fovy: float, server_fovy: float | None,
+                 ctx: moderngl.Context | None):
+        if int(width) <= 0 or int(height) <= 0:
+            raise ValueError(f"{type(self).__name__}: display size must be positive, got {width}x{height}")
+        self.width, self.height = int(width), int(height)
+        self.fovy = float(fovy)
+        self.server_fovy = float(fovy if server_fovy is None else server_fovy)
+        Frustum.symmetric(self.fovy, 1.0)
+        Frustum.symmetric(self.server_fovy, 1.0)  # both raise ValueError for a bad field of view
+        self.ctx = ctx or gl_context()
+        self.decoder = AtlasDecoder()
+        self.frame: _Frame | None = None
+        self._frame_tex: moderngl.Texture | None = None
+        self._out = self.ctx.texture((self.width, self.height), 4, dtype="f1")
+        self._out_depth = self.ctx.depth_renderbuffer((self.width, self.height))
+        self._fbo = self.ctx.framebuffer([self._out], self._out_depth)
+        self._atw = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "atw.frag.glsl")
+        self._fullscreen = self.ctx.vertex_array(self._atw, [])
+
+    @property
+    def needs_reference(self) -> bool:
+        """True while the video decoder waits for an IDR (before the first one and after an error)."""
+        return self.decoder.needs_keyframe
+
+    def camera(self, pose: Pose, near: float = 0.1, far: float = 100.0) -> Camera:
+        """The display camera at `pose`."""
+        return Camera.perspective(pose, self.width, self.height, self.fovy, near, far)
+
+    def frame_frustum(self) -> Frustum:
+        """The frustum the current frame was rendered with (server fovy, the decoded image's aspect)."""
+        return Frustum.symmetric(self.server_fovy, self.frame.width / self.frame.height)
+
+    def _upload_texture(self, tex: moderngl.Texture | None, img: np.ndarray, components: int, dtype: str,
+                        flt: int) -> moderngl.Texture:
+        h, w = img.shape[:2]
+        if tex is None or tex.size != (w, h):
+            if tex is not None:
+                tex.release()
+            tex = self.ctx.texture((w, h), components, dtype=dtype, alignment=1)
+            tex.filter = (flt, flt)
+            tex.repeat_x = tex.repeat_y = False
+        tex.write(np.ascontiguousarray(img[::-1]).tobytes())  # GL's first row is the bottom one
+        return tex
+
+    def _commit_color(self, payload: FramePayload, pose: Pose, rgb: np.ndarray) -> None:
+        self._frame_tex = self._upload_texture(self._frame_tex, rgb, 3, "f1", moderngl.LINEAR)
+        self.frame = _Frame(pose, rgb.shape[1], rgb.shape[0], int(payload.frame_id))
+
+    def _draw_atw(self, pose: Pose) -> None:
+        h = rotation_homography(self.frame.pose, self.frame_frustum(), pose, self.camera(pose).frustum)
+        self._frame_tex.use(0)
+        set_uniforms(self._atw, u_frame=0, u_h=_mat3(h))
+        self._fullscreen.render(moderngl.TRIANGLES, vertices=3)
+
+    def _draw(self, pose: Pose) -> None:
+        raise NotImplementedError
+
+    def render(self, pose: Pose) -> np.ndarray:
+        """The displayed image (height, width, 3) uint8, top row first, for the current `pose`."""
+        if self.frame is None:
+            return np.zeros((self.height, self.width, 3), np.uint8)
+        self._fbo.use()
+        self._fbo.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
+        self._draw(pose)
+        return read_texture(self._out, 4, "u1")[..., :3]
+
+    def close(self) -> None:
+        self.decoder.close()
+        for obj in (self._fbo, self._out, self._out_depth, self._frame_tex):
+            if obj is not None:
+                obj.release()
+        self._frame_tex = None
+        self.frame = None
+
+
+class ATWClient(_BaselineClient):
+    """Asynchronous time warp: the last frame, re-oriented (rotation only) to the current pose.
+
+    `server_fovy` is the vertical field of view the server renders with (default: the display's `fovy`).
+    """
+
+    name = "atw"
+    method = Method.ATW
+
+    def __init__(self, width: int, height: int, fovy: float = 60.0, server_fovy: float | None = None,
+                 ctx: moderngl.Context | None = None):
+        super().__init__(width, height, fovy, server_fovy, ctx)
+
+    def receive(self, payload: FramePayload) -> None:
+        pose = _payload_pose(payload, self.method)
+        rgb = self.decoder.decode(payload.video)  # raises VideoError
+        if rgb is not None:
+            self._commit_color(payload, pose, rgb)
+
+    def _draw(self, pose: Pose) -> None:
+        self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
+        self._draw_atw(pose)
+
+
+class MeshWarpClient(_BaselineClient):
+    """MeshWarp: the last frame's depth as a connected grid mesh (one vertex per pixel), textured with its colour.
+
+    `server_fovy` is the vertical field of view the server renders with (60, or 120 for QUASAR's wide variant).
+    """
+
+    name = "meshwarp"
+    method = Method.MESHWARP
+
+    def __init__(self, width: int, height: int, fovy: float = 60.0, server_fovy: float = 60.0,
+                 ctx: moderngl.Context | None = None, max_depth_pixels: int = DEFAULT_MAX_DEPTH_PIXELS):
+        super().__init__(width, height, fovy, server_fovy, ctx)
+        self.max_depth_pixels = int(max_depth_pixels)
+        self._mesh_prog = program(self.ctx, HERE / "meshwarp.vert.glsl", HERE / "meshwarp.frag.glsl")
+        self._depth_tex: moderngl.Texture | None = None
+        self._grid: tuple[tuple[int, int], moderngl.Buffer, moderngl.VertexArray] | None = None
+
+    def receive(self, payload: FramePayload) -> None:
+        pose = _payload_pose(payload, self.method)
+        # Video first (raises VideoError): the decoder follows the stream even if the depth turns out bad.
+        rgb = self.decoder.decode(payload.video)
+        depth = decode_depth(payload.geometry, max_pixels=self.max_depth_pixels)
+        if rgb is None:
+            return
+        if depth.shape != rgb.shape[:2]:
+            raise ProtocolError(f"payload.geometry: depth map is {depth.shape[1]}x{depth.shape[0]}, "
+                                f"the video frame {rgb.shape[1]}x{rgb.shape[0]}")
+        if min(depth.shape) < 2:
+            raise ProtocolError(f"payload.geometry: depth map {depth.shape[1]}x{depth.shape[0]} is too small "
+                                "for a mesh")
+        self._commit_color(payload, pose, rgb)
+        self._depth_tex = self._upload_texture(self._depth_tex, np.where(np.isfinite(depth), depth, 0.0)
+                                               .astype(np.float32), 1, "f4", moderngl.NEAREST)
+
+    def _grid_vao(self, w: int, h: int) -> moderngl.VertexArray:
+        """A static index buffer of (w-1)(h-1) quads, two triangles each, over vertex ids row * w + column."""
+        if self._grid is None or self._grid[0] != (w, h):
+            if self._grid is not None:
+                self._grid[2].release()
+                self._grid[1].release()
+            v = (np.arange(h - 1)[:, None] * w + np.arange(w - 1)[None, :]).reshape(-1).astype(np.uint32)
+            idx = np.stack([v, v + 1, v + w, v + 1, v + w + 1, v + w], axis=1)
+            ibo = self.ctx.buffer(idx.tobytes())
+            vao = self.ctx.vertex_array(self._mesh_prog, [], index_buffer=ibo, index_element_size=4)
+            self._grid = ((w, h), ibo, vao)
+        return self._grid[2]
+
+    def _draw(self, pose: Pose) -> None:
+        ctx = self.ctx
+        ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
+        self._draw_atw(pose)  # in-fill for whatever the mesh leaves uncovered
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.depth_func = "<"
+        cam = self.camera(pose, DISPLAY_NEAR, DISPLAY_FAR)
+        mvp = cam.projection_matrix() @ cam.view_matrix() @ self.frame.pose.camera_to_world()
+        self._frame_tex.use(0)
+        self._depth_tex.use(1)
+        set_uniforms(self._mesh_prog, u_frame=0, u_depth=1, u_mvp=gl_matrix(mvp),
+                     u_inv_k=_mat3(np.linalg.inv(_k(self.frame_frustum()))))
+        self._grid_vao(self.frame.width, self.frame.height).render(moderngl.TRIANGLES)
+        ctx.disable(moderngl.DEPTH_TEST)
+
+    def close(self) -> None:
+        if self._grid is not None:
+            self._grid[2].release()
+            self._grid[1].release()
+            self._grid = None
+        if self._depth_tex is not None:
+            self._depth_tex.release()
+            self._depth_tex = None
+        super().close()

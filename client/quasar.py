@@ -1,0 +1,129 @@
+"""QUASAR's client (§3.6): decode payloads, keep the cached reference frame, rebuild the layered mesh, render it
+from the user's current pose."""
+from __future__ import annotations
+
+import time
+
+import moderngl
+import numpy as np
+
+from client.method import MethodClient
+from client.video import AtlasDecoder, VideoError
+from protocol.errors import ProtocolError
+from protocol.frame import FramePayload, Method, PayloadType
+from protocol.quads import FrameType, LayerKind, QuadFrame, decode_quad_frame
+from render.camera import Camera, Frustum, Pose
+from render.gl import gl_context
+from render.quadcache import QuadCache
+from render.quadmesh import MeshLayer, MeshView, QuadMesh
+
+
+class QuasarClient(MethodClient):
+    name = "quasar"
+
+    def __init__(self, width: int, height: int, fovy_deg: float = 60.0, ctx: moderngl.Context | None = None,
+                 max_quads: int = 8 << 20):
+        self.ctx = ctx or gl_context()
+        self.width, self.height = width, height
+        self.frustum = Frustum.symmetric(fovy_deg, width / height)
+        self.decoder = AtlasDecoder()
+        self.mesh = QuadMesh(self.ctx)
+        self.view = MeshView(self.ctx, width, height)
+        self.max_quads = max_quads
+        self.cache: QuadCache | None = None
+        self.reference_id = -1
+        self.reference_camera: Camera | None = None
+        self.atlas: moderngl.Texture | None = None
+        self._needs_reference = True
+        self.last_frame_id = -1
+        self.stats: dict = {}
+
+    @property
+    def needs_reference(self) -> bool:
+        return self._needs_reference
+
+    def receive(self, payload: FramePayload) -> None:
+        """Apply one payload. On any defect raise ProtocolError/VideoError and keep showing the last good state."""
+        ms: dict[str, float] = {}
+        if payload.method != Method.QUASAR:
+            raise ProtocolError(f"quasar client got a {payload.method.name} payload")
+        t0 = time.perf_counter()
+        frame = decode_quad_frame(payload.geometry, max_quads=self.max_quads)
+        ms["zstd"] = (time.perf_counter() - t0) * 1e3
+        is_reference = frame.frame_type == FrameType.REFERENCE
+        if (frame.frame_type == FrameType.RESIDUAL) != (payload.frame_type == PayloadType.RESIDUAL):
+            raise ProtocolError("frame payload and quad blob disagree on the frame type")
+        if not is_reference and (frame.reference_id != self.reference_id or self.cache is None):
+            self._needs_reference = True
+            raise ProtocolError(f"residual frame {frame.frame_id} needs reference {frame.reference_id}, "
+                                f"the client has {self.reference_id if self.reference_id >= 0 else 'none'}")
+        t0 = time.perf_counter()
+        try:
+            image = self.decoder.decode(payload.video)
+        except VideoError:
+            if not is_reference:
+                self._needs_reference = True  # the decoder waits for the next IDR, i.e. the next reference
+            raise
+        ms["video"] = (time.perf_counter() - t0) * 1e3
+        if image is None:
+            self._needs_reference = True
+            raise VideoError(f"frame {frame.frame_id}: the video decoder is waiting for a keyframe")
+        layers = self._check_layers(frame, image.shape[1], image.shape[0])
+
+        t0 = time.perf_counter()
+        kinds = [l.kind for l in frame.layers]
+        if is_reference:
+            visible = frame.layers[kinds.index(LayerKind.VISIBLE)]
+            self.cache = QuadCache(visible.width, visible.height)
+            self.cache.reset(visible.quads)
+            self.reference_camera = layers[kinds.index(LayerKind.VISIBLE)][1]
+            self.reference_rect = visible.atlas_rect
+            self.reference_id = frame.frame_id
+        elif LayerKind.UPDATED in kinds:
+            self.cache.update(frame.layers[kinds.index(LayerKind.UPDATED)].quads)
+        mesh_layers = [MeshLayer(self.cache.quads, self.reference_camera, self.reference_rect)]
+        mesh_layers += [MeshLayer(l.quads, cam, l.atlas_rect) for l, cam in layers
+                        if l.kind in (LayerKind.REVEALED, LayerKind.HIDDEN, LayerKind.WIDE)]
+        ms["quad_update"] = (time.perf_counter() - t0) * 1e3
+
+        t0 = time.perf_counter()
+        h, w = image.shape[:2]
+        if self.atlas is None or self.atlas.size != (w, h):
+            if self.atlas is not None:
+                self.atlas.release()
+            self.atlas = self.ctx.texture((w, h), 3)
+            self.atlas.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        self.atlas.write(np.ascontiguousarray(image).tobytes())
+        self.mesh.build(mesh_layers, (w, h))
+        self.ctx.finish()
+        ms["mesh"] = (time.perf_counter() - t0) * 1e3
+        self._needs_reference = False
+        self.last_frame_id = frame.frame_id
+        self.stats = {"ms": ms, "cache_quads": len(self.cache), "cache_bytes": self.cache.nbytes,
+                      "mesh_quads": self.mesh.quad_count}
+
+    def _check_layers(self, frame: QuadFrame, atlas_w: int, atlas_h: int) -> list:
+        kinds = [l.kind for l in frame.layers]
+        if frame.frame_type == FrameType.REFERENCE and LayerKind.VISIBLE not in kinds:
+            raise ProtocolError("reference frame has no visible layer")
+        out = []
+        for i, layer in enumerate(frame.layers):
+            x, y, w, h = layer.atlas_rect
+            if x + w > atlas_w or y + h > atlas_h:
+                raise ProtocolError(f"layer {i}: atlas rect {layer.atlas_rect} outside the {atlas_w}x{atlas_h} video")
+            try:
+                cam = Camera.from_array(layer.camera, layer.width, layer.height)
+            except ValueError as exc:
+                raise ProtocolError(f"layer {i}: bad camera: {exc}") from None
+            out.append((layer, cam))
+        return out
+
+    def render(self, pose: Pose) -> np.ndarray:
+        t0 = time.perf_counter()
+        camera = Camera(pose, self.frustum, self.width, self.height)
+        if self.atlas is None:
+            return np.zeros((self.height, self.width, 3), np.uint8)
+        self.view.render(self.mesh, camera, self.atlas)
+        image = self.view.read_color()
+        self.stats.setdefault("ms", {})["render"] = (time.perf_counter() - t0) * 1e3
+        return image
