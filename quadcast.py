@@ -2,6 +2,8 @@
 
     quadcast render   --scene S --trace T --size WxH --frames N [--every K] --out DIR [--depth]
     quadcast encode   --scene S --trace T --size WxH --frames N --viewcell R [--every K] --out DIR
+    quadcast predict  --trace T --latency MS --jitter MS [--no-predict] [--smooth] [--seed N]
+    quadcast eval     --scene S --trace T --method M --latency MS --jitter MS --viewcell R --size WxH --out DIR
     quadcast bench    render [--sizes 960x540,1920x1080] [--scenes builtin:courtyard,monastery]
     quadcast demo     [--out DIR]
 
@@ -144,6 +146,49 @@ def cmd_encode(args) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------------ predict, eval
+
+def cmd_predict(args) -> int:
+    from server.prediction import prediction_errors
+    from sim.traces import resolve_trace
+    trace = resolve_trace(args.trace)
+    errors = prediction_errors(trace.times, trace.positions, trace.quats, args.latency, args.jitter,
+                               predict=not args.no_predict, smooth=args.smooth, seed=args.seed)
+    print(json.dumps({k: errors[k] for k in ("position_cm", "rotation_deg")}, indent=1))
+    return 0
+
+
+def _eval_spec(args):
+    from render.camera import parse_size
+    from sim.evaluate import EvalSpec
+    from sim.link import parse_loss, parse_rate_mbit
+    w, h = parse_size(args.size)
+    return EvalSpec(scene=args.scene, trace=args.trace, method=args.method, latency_ms=args.latency,
+                    jitter_ms=args.jitter, rate_mbit=parse_rate_mbit(args.rate) if args.rate else None,
+                    loss=parse_loss(args.loss) if args.loss else 0.0, viewcell_m=args.viewcell, width=w, height=h,
+                    frames=args.frames, every=args.every, stereo=args.stereo, seed=args.seed,
+                    predict=not args.no_predict, crf=args.crf)
+
+
+def cmd_eval(args) -> int:
+    from sim.evaluate import format_summary, run_eval, run_sweep
+    spec = _eval_spec(args)
+    out = Path(args.out)
+    if args.sweep:
+        rows = run_sweep(spec, out, quiet=args.quiet)
+        print((out / "table.md").read_text(), end="")
+        print(f"sweep of {len(rows)} runs -> {out}/table.md, {out}/quality_vs_rate.png")
+        return 0
+    summary = run_eval(spec, out, quiet=args.quiet)
+    print(format_summary(summary))
+    if "stereo" in summary:
+        st = summary["stereo"]
+        print(f"stereo (synthesized eye): SSIM {st['ssim']:.4f} PSNR {st['psnr']:.2f} dB FLIP {st['flip']:.4f}, "
+              f"cost {100 * st['cost_ratio']:.1f}% of rendering the eye")
+    print(f"report: {out / 'report.html'}")
+    return 0
+
+
 # ------------------------------------------------------------------------------------------------- bench
 
 def bench_render(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10) -> list[dict]:
@@ -235,6 +280,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--crf", type=float, default=23.0, help="x264 constant rate factor")
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_encode)
+
+    p = sub.add_parser("predict", help="pose-prediction errors along a trace (QUASAR Table 1)")
+    p.add_argument("--trace", default="builtin:walk")
+    p.add_argument("--latency", type=float, default=20.0, help="one-way latency, ms")
+    p.add_argument("--jitter", type=float, default=10.0, help="uniform jitter, +- ms")
+    p.add_argument("--no-predict", action="store_true", help="use the last received pose as is")
+    p.add_argument("--smooth", action="store_true", help="Savitzky-Golay smoothing before prediction")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_predict)
+
+    p = sub.add_parser("eval", help="replay a trace under simulated latency; Mbps and FLIP/SSIM/PSNR per trace")
+    p.add_argument("--scene", default="builtin:courtyard")
+    p.add_argument("--trace", default="builtin:walk")
+    p.add_argument("--method", default="quasar", choices=["quasar", "quadstream", "meshwarp", "meshwarp120", "atw"])
+    p.add_argument("--latency", type=float, default=20.0, help="one-way latency, ms")
+    p.add_argument("--jitter", type=float, default=10.0, help="uniform jitter, +- ms")
+    p.add_argument("--rate", help="downlink rate cap, e.g. 200mbit")
+    p.add_argument("--loss", help="downlink message loss, e.g. 0.5%%")
+    p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
+    p.add_argument("--size", default="960x540", help="WxH")
+    p.add_argument("--frames", type=int, default=120, help="client display frames at 60 Hz")
+    p.add_argument("--every", type=int, default=1, help="score every K-th display frame")
+    p.add_argument("--stereo", action="store_true", help="also synthesize and score the second eye (YORO)")
+    p.add_argument("--no-predict", action="store_true")
+    p.add_argument("--crf", type=float, default=23.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sweep", action="store_true",
+                   help="methods x {20+-10, 50+-20 ms} x viewcell {0.25, 0.5, 1.0}: a comparison table and plot")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("bench", help="print speed figures (not a test)")
     p.add_argument("what", choices=["render"])

@@ -1,0 +1,251 @@
+"""Evaluation: replay a trace for a method under simulated latency and score every shown frame against ground
+truth (FLIP, SSIM, PSNR) — `quadcast eval`. Also scores a live client's recording (`evaluate_recording`).
+
+Outputs in DIR: summary.json (means and figures; everything but the wall-clock `server_ms`/`client_ms` is
+identical for the same seed), frames.csv (one row per scored frame), report.html (plots and worst frames).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from render.camera import Camera, Pose
+from render.renderer import DeferredRenderer
+from render.scene import load_scene
+from sim.methods import MethodConfig, make_client, make_server
+from sim.metrics import compare
+from sim.replay import DisplayedFrame, ReplayConfig, replay
+from sim.report import FrameImages, write_frames_csv, write_report_html, write_summary_json
+from sim.traces import resolve_trace
+
+WALLCLOCK_KEYS = ("server_ms", "client_ms")
+WORST_FRAMES = 3
+
+
+@dataclass
+class EvalSpec:
+    scene: str = "builtin:courtyard"
+    trace: str = "builtin:walk"
+    method: str = "quasar"
+    latency_ms: float = 20.0
+    jitter_ms: float = 10.0
+    rate_mbit: float | None = None
+    loss: float = 0.0
+    viewcell_m: float = 0.5
+    width: int = 960
+    height: int = 540
+    frames: int = 120              # client display frames (60 Hz)
+    every: int = 1                 # score every K-th display frame
+    stereo: bool = False
+    seed: int = 0
+    predict: bool = True
+    smooth: bool | None = None     # None: Savitzky-Golay smoothing at >= 50 ms, as QUASAR
+    crf: float = 23.0
+    reference_every: int = 5
+
+
+def _stats(values) -> dict:
+    a = np.asarray([v for v in values if v is not None and np.isfinite(v)], np.float64)
+    if a.size == 0:
+        return {"mean": None, "std": None, "max": None}
+    return {"mean": float(a.mean()), "std": float(a.std()), "max": float(a.max())}
+
+
+def _mean_stages(rows: list[dict]) -> dict:
+    keys = sorted({k for r in rows for k in r})
+    return {k: float(np.mean([r[k] for r in rows if k in r])) for k in keys}
+
+
+class _Scorer:
+    """Ground truth at the client's true pose and time; FLIP/SSIM/PSNR; keeps the worst frames' images."""
+
+    def __init__(self, renderer: DeferredRenderer, width: int, height: int, fovy: float, stereo=None):
+        self.renderer, self.width, self.height, self.fovy = renderer, width, height, fovy
+        self.records: list[dict] = []
+        self.worst: list[tuple[float, FrameImages]] = []
+        self.stereo = stereo
+        self.stereo_rows: list[dict] = []
+
+    def score(self, index: int, t: float, pose: Pose, image: np.ndarray, extra: dict) -> None:
+        camera = Camera.perspective(pose, self.width, self.height, self.fovy)
+        gt = self.renderer.render(camera, t).color
+        s = compare(gt, image)
+        rec = {"frame": index, "t": t, "flip": s.flip, "ssim": s.ssim, "psnr": s.psnr, **extra}
+        self.records.append(rec)
+        self.worst.append((s.flip, FrameImages(gt, image, s.flip_map, f"frame {index} (t={t:.2f} s) "
+                                                                       f"FLIP {s.flip:.3f}")))
+        self.worst.sort(key=lambda x: -x[0])
+        del self.worst[WORST_FRAMES:]
+        if self.stereo is not None:
+            self.stereo_rows.append(self.stereo(camera, t, image))
+
+
+def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dict:
+    """Replay and score one method on one trace; write the outputs to `out` when given. Returns the summary."""
+    from tqdm import tqdm
+
+    scene = load_scene(spec.scene)
+    trace = resolve_trace(spec.trace)
+    needed = spec.frames / 60.0
+    if needed > trace.duration + 1e-9:
+        raise ValueError(f"trace {spec.trace!r} lasts {trace.duration:.1f} s; {spec.frames} frames at 60 Hz need "
+                         f"{needed:.1f} s")
+    if spec.every < 1 or spec.frames < 1:
+        raise ValueError("--frames and --every must be >= 1")
+    renderer = DeferredRenderer(scene)
+    cfg = MethodConfig(width=spec.width, height=spec.height, viewcell_radius=spec.viewcell_m,
+                       reference_every=spec.reference_every, crf=spec.crf)
+    server = make_server(spec.method, renderer, cfg)
+    client = make_client(spec.method, cfg, renderer.ctx)
+    smooth = spec.smooth if spec.smooth is not None else spec.latency_ms >= 50
+    rc = ReplayConfig(latency_ms=spec.latency_ms, jitter_ms=spec.jitter_ms, rate_mbit=spec.rate_mbit,
+                      loss=spec.loss, predict=spec.predict, smooth=smooth, seed=spec.seed)
+    stereo = _stereo_scorer(renderer, spec) if spec.stereo else None
+    scorer = _Scorer(renderer, spec.width, spec.height, cfg.fovy_deg, stereo)
+    bar = tqdm(total=spec.frames, desc=f"eval {spec.method}", unit="frame", disable=quiet, leave=False)
+    client_ms: list[dict] = []
+
+    def on_display(f: DisplayedFrame) -> None:
+        extra = {"frame_id": f.frame_id, "age_ms": f.age_ms}
+        if f.render_pose is not None:
+            extra["pose_error_cm"] = f.render_pose.distance_to(f.pose) * 100
+            extra["pose_error_deg"] = f.render_pose.angle_to_deg(f.pose)
+        client_ms.append(f.client_ms)
+        scorer.score(f.index, f.t, f.pose, f.image, extra)
+
+    def show(i: int) -> bool:
+        bar.update(1)
+        return i % spec.every == 0
+
+    totals = replay(trace, server, client, rc, spec.frames, on_display, show)
+    bar.close()
+    server.close()
+    client.close()
+    # Frames shown before the first payload arrived are black for every method: score only after that.
+    scored = [r for r in scorer.records if r["frame_id"] >= 0]
+    rate = lambda b: b * 8 / totals.duration_s / 1e6  # noqa: E731
+    stats = totals.server_stats
+    summary = {
+        "method": spec.method, "scene": spec.scene, "trace": spec.trace, "latency_ms": spec.latency_ms,
+        "jitter_ms": spec.jitter_ms, "rate_mbit": spec.rate_mbit, "loss": spec.loss, "viewcell_m": spec.viewcell_m,
+        "size": f"{spec.width}x{spec.height}", "frames": len(scored), "display_frames": spec.frames,
+        "every": spec.every, "seed": spec.seed, "predict": spec.predict, "smooth": smooth,
+        "mbps": rate(totals.bytes_total), "mbps_video": rate(totals.bytes_video),
+        "mbps_geometry": rate(totals.bytes_geometry),
+        "flip": float(np.mean([r["flip"] for r in scored])) if scored else None,
+        "ssim": float(np.mean([r["ssim"] for r in scored])) if scored else None,
+        "psnr": float(np.mean([r["psnr"] for r in scored])) if scored else None,
+        "pose_error_cm": _stats(r.get("pose_error_cm") for r in scored),
+        "pose_error_deg": _stats(r.get("pose_error_deg") for r in scored),
+        "server_frames": totals.frames_sent, "frames_applied": totals.frames_applied,
+        "frames_lost": totals.frames_lost, "frames_rejected": totals.frames_rejected,
+        "reference_requests": totals.reference_requests,
+        "server_ms": _mean_stages(totals.server_ms), "client_ms": _mean_stages(client_ms),
+    }
+    if spec.method == "quasar":
+        ref = [s["bytes_geometry"] + s["bytes_video"] for s in stats if s.get("type") == "reference"]
+        res = [s["bytes_geometry"] + s["bytes_video"] for s in stats if s.get("type") == "residual"]
+        summary["residual_to_reference_bytes"] = float(np.mean(res) / np.mean(ref)) if ref and res else None
+    if stereo is not None and scorer.stereo_rows:
+        summary["stereo"] = {k: float(np.mean([r[k] for r in scorer.stereo_rows]))
+                             for k in ("ssim", "psnr", "flip", "cost_ratio")}
+    if out is not None:
+        write_outputs(Path(out), summary, scored, [f for _, f in scorer.worst])
+    return summary
+
+
+def write_outputs(out: Path, summary: dict, records: list[dict], worst: list) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    write_summary_json(out / "summary.json", summary)
+    write_frames_csv(out / "frames.csv", records)
+    write_report_html(out / "report.html", summary, records, worst,
+                      title=f"quadcast {summary.get('method')} on {summary.get('trace')}")
+
+
+def _stereo_scorer(renderer: DeferredRenderer, spec: EvalSpec):
+    """Per scored frame: the right eye synthesized from the displayed (left) eye vs a true right-eye render."""
+    from client.stereo import stereo_figures
+    return lambda camera, t, image: stereo_figures(renderer, camera, t)
+
+
+# ----------------------------------------------------------------------------------------------- sweep
+
+SWEEP_METHODS = ("quasar", "quadstream", "meshwarp", "atw")
+SWEEP_LATENCIES = ((20.0, 10.0), (50.0, 20.0))
+SWEEP_VIEWCELLS = (0.25, 0.5, 1.0)
+
+
+def run_sweep(base: EvalSpec, out: Path, methods=SWEEP_METHODS, latencies=SWEEP_LATENCIES,
+              viewcells=SWEEP_VIEWCELLS, quiet: bool = False) -> list[dict]:
+    """Methods × latencies × viewcells (viewcells matter only to quasar and quadstream)."""
+    from tqdm import tqdm
+
+    from sim.report import plot_quality_vs_rate, write_comparison_table
+    runs = []
+    for method in methods:
+        for lat, jit in latencies:
+            for vc in (viewcells if method in ("quasar", "quadstream") else (base.viewcell_m,)):
+                runs.append((method, lat, jit, vc))
+    rows = []
+    for method, lat, jit, vc in tqdm(runs, desc="sweep", unit="run", disable=quiet):
+        spec = EvalSpec(**{**asdict(base), "method": method, "latency_ms": lat, "jitter_ms": jit, "viewcell_m": vc})
+        name = f"{method}_{lat:g}ms_{vc:g}m"
+        s = run_eval(spec, out / name, quiet=True)
+        rows.append({"method": method, "latency_ms": f"{lat:g}±{jit:g}",
+                     "viewcell": vc if method in ("quasar", "quadstream") else "–",
+                     "mbps": s["mbps"], "flip": s["flip"], "ssim": s["ssim"], "psnr": s["psnr"]})
+    table = write_comparison_table(rows)
+    (out / "table.md").write_text(table)
+    (out / "sweep.json").write_text(json.dumps(rows, indent=1))
+    plot_quality_vs_rate([r for r in rows if r["mbps"] and r["mbps"] > 0], out / "quality_vs_rate.png")
+    return rows
+
+
+# ------------------------------------------------------------------------------------- live recordings
+
+def evaluate_recording(directory: str | Path) -> dict:
+    """Score a live client's recording (recording.json + displayed PNGs) against ground truth rendered now."""
+    from PIL import Image
+
+    directory = Path(directory)
+    rec = json.loads((directory / "recording.json").read_text())
+    w, h = rec["size"]
+    renderer = DeferredRenderer(load_scene(rec["scene"]))
+    scorer = _Scorer(renderer, w, h, rec.get("fovy_deg", 60.0))
+    client_ms = []
+    for f in rec["frames"]:
+        image = np.asarray(Image.open(directory / f["image"]).convert("RGB"))
+        pose = Pose(f["position"], f["quat"])
+        extra = {k: f[k] for k in ("frame_id", "age_ms", "bytes_video", "bytes_geometry") if k in f}
+        scorer.score(f["index"], f["t"], pose, image, extra)
+        client_ms.append(f.get("client_ms", {}))
+    scored = [r for r in scorer.records if r.get("frame_id", 0) >= 0]
+    summary = {
+        "method": rec["method"], "scene": rec["scene"], "trace": rec.get("trace"),
+        "latency_ms": rec.get("latency_ms"), "viewcell_m": rec.get("viewcell_m"), "size": f"{w}x{h}",
+        "frames": len(scored), "mbps": rec.get("mbps"),
+        "flip": float(np.mean([r["flip"] for r in scored])) if scored else None,
+        "ssim": float(np.mean([r["ssim"] for r in scored])) if scored else None,
+        "psnr": float(np.mean([r["psnr"] for r in scored])) if scored else None,
+        "client_ms": _mean_stages(client_ms), "live": True,
+    }
+    write_outputs(directory, summary, scored, [f for _, f in scorer.worst])
+    return summary
+
+
+def strip_wallclock(summary: dict) -> dict:
+    """The summary without its wall-clock figures (what must be identical for the same seed)."""
+    return {k: v for k, v in summary.items() if k not in WALLCLOCK_KEYS}
+
+
+def format_summary(s: dict) -> str:
+    def f(v, fmt):
+        return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
+    return (f"{s['method']:>11s} {s.get('latency_ms', 0):>4g}±{s.get('jitter_ms', 0):<3g}ms vc {s['viewcell_m']:g} m: "
+            f"{f(s['mbps'], '8.2f')} Mbps (video {f(s.get('mbps_video'), '.2f')}, geometry "
+            f"{f(s.get('mbps_geometry'), '.2f')})  FLIP {f(s['flip'], '.4f')}  SSIM {f(s['ssim'], '.4f')}  "
+            f"PSNR {f(s['psnr'], '.2f')} dB")
