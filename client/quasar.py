@@ -19,10 +19,14 @@ from render.quadmesh import MeshLayer, MeshView, QuadMesh
 
 
 class QuasarClient(MethodClient):
+    """Also the QuadStream baseline's client (`method=Method.QUADSTREAM`): its frames are all references."""
+
     name = "quasar"
 
     def __init__(self, width: int, height: int, fovy_deg: float = 60.0, ctx: moderngl.Context | None = None,
-                 max_quads: int = 8 << 20):
+                 max_quads: int = 8 << 20, method: Method = Method.QUASAR):
+        self.method = Method(method)
+        self.name = self.method.name.lower()
         self.ctx = ctx or gl_context()
         self.width, self.height = width, height
         self.frustum = Frustum.symmetric(fovy_deg, width / height)
@@ -45,8 +49,8 @@ class QuasarClient(MethodClient):
     def receive(self, payload: FramePayload) -> None:
         """Apply one payload. On any defect raise ProtocolError/VideoError and keep showing the last good state."""
         ms: dict[str, float] = {}
-        if payload.method != Method.QUASAR:
-            raise ProtocolError(f"quasar client got a {payload.method.name} payload")
+        if payload.method != self.method:
+            raise ProtocolError(f"{self.name} client got a {payload.method.name} payload")
         t0 = time.perf_counter()
         frame = decode_quad_frame(payload.geometry, max_quads=self.max_quads)
         ms["zstd"] = (time.perf_counter() - t0) * 1e3

@@ -98,7 +98,8 @@ class QuadGenerator:
         fi = inner.frustum if inner is not None else None
         set_uniforms(prog, u_position=0, u_normal=1, u_mask=2, u_use_mask=mask is not None,
                      u_exclude_inner=inner is not None,
-                     u_inner_frustum=(fi.left / fi.near, fi.right / fi.near, fi.bottom / fi.near, fi.top / fi.near)
+                     # 2% inside the main view's edges, so the wide view overlaps it by a pixel or two
+                     u_inner_frustum=tuple(0.98 * v / fi.near for v in (fi.left, fi.right, fi.bottom, fi.top))
                      if fi else (0.0, 0.0, 0.0, 0.0),
                      u_delta_max=params.delta_max, u_max_angle=max_angle,
                      u_sky_distance=camera.frustum.far * 0.9 if params.sky else 0.0)

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import moderngl
 import numpy as np
-from scipy.ndimage import binary_dilation, binary_opening
+from scipy.ndimage import binary_dilation
 
 from protocol.frame import FramePayload, Method, PayloadType
 from protocol.quads import FrameType, LayerKind, QuadFrame, QuadLayer, QuadSet, encode_quad_frame, \
@@ -156,9 +156,7 @@ class QuasarServer(MethodServer):
             depth = gbs[0].read_depth()
             with np.errstate(invalid="ignore"):
                 revealed = np.isinf(mesh_depth) | (depth < mesh_depth * (1 - s.change_threshold))
-            # Slivers one pixel wide are sub-pixel misalignment of silhouettes, not disocclusions: open them away,
-            # then expand the rest by one pixel (the residual quads are not pixel-aligned with the reference).
-            revealed = binary_dilation(binary_opening(revealed, np.ones((2, 2), bool)), iterations=1)
+            revealed = binary_dilation(revealed, iterations=1)
             rev = quads(gbs[0], camera, s.visible, mask=revealed) if revealed.any() else QuadSet.empty()
             layers.append(QuadLayer(LayerKind.UPDATED, s.width, s.height, ref_cam.to_array(), L.reference, updated))
             layers.append(QuadLayer(LayerKind.REVEALED, s.width, s.height, cam_floats, L.current, rev))

@@ -58,7 +58,9 @@ def make_client(name: str, config: MethodConfig, ctx: moderngl.Context | None = 
     _check(name)
     if name in ("quasar", "quadstream"):
         from client.quasar import QuasarClient
-        return QuasarClient(config.width, config.height, config.fovy_deg, ctx=ctx)
+        from protocol.frame import Method
+        return QuasarClient(config.width, config.height, config.fovy_deg, ctx=ctx,
+                            method=Method.QUASAR if name == "quasar" else Method.QUADSTREAM)
     from client.baselines import ATWClient, MeshWarpClient
     if name == "atw":
         return ATWClient(config.width, config.height, config.fovy_deg, ctx=ctx)
