@@ -274,4 +274,13 @@ def courtyard_scene() -> Scene:
                  sky=np.array([0.55, 0.70, 0.92]))
 
 
-BUILTIN_SCENES = {"courtyard": courtyard_scene}
+def static_courtyard_scene() -> Scene:
+    """The courtyard with its animations stopped (for tests and static-scene figures)."""
+    scene = courtyard_scene()
+    for obj in scene.objects:
+        obj.animation = None
+    scene.name = "courtyard-static"
+    return scene
+
+
+BUILTIN_SCENES = {"courtyard": courtyard_scene, "courtyard-static": static_courtyard_scene}

@@ -1,0 +1,326 @@
+"""Single-render stereo: the second eye synthesized from the dominant eye's colour and depth.
+
+Mode 1 is YORO (Chen et al., MobiSys '25, sections 5-7), three compute shaders:
+
+1. `yoro_reproject.comp` (Algorithm 1): per ImBuffer pixel, one matrix (dominant view space -> other eye's clip
+   space, eq. 5) gives where the pixel lands in the other eye; for parallel eyes that is a shift of f*ipd/z.
+2. `yoro_scan.comp` (Algorithm 2): one invocation per row scatters the row, keeps the nearest pixel where
+   several land on one, and records each disocclusion's left edge, width and background side.
+3. `yoro_patch.comp` (Algorithm 3, eq. 6): per output pixel, colour from the source position; disocclusions
+   are filled from background pixels only.
+
+The ImBuffer (intermediate buffer) is `intermediate_scale` times the eye width (full height); the Patcher reads it
+at full resolution, interpolating the source position along x.
+
+Mode 2 is stereo shading reprojection (Oculus): the pixels the reprojection cannot supply -- disocclusions, plus
+covered pixels within 2 px of a nearer surface in the source (the conservative min-depth triangle filter against
+edge ghosting) -- are re-rendered by the caller's draw function, culled everywhere else by a depth mask (depth 0
+where the reprojection is kept), and composited with the reprojected pixels.
+
+All images on the GPU use GL's row order (bottom first); `read_*` methods return numpy images top row first.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import moderngl
+import numpy as np
+
+from render.camera import DEFAULT_IPD_M, Camera, gl_matrix
+from render.gl import RENDER_DIR, compute, program, set_uniforms
+from render.renderer import GBuffer, read_texture
+
+HERE = Path(__file__).resolve().parent
+
+CullFn = Callable[[moderngl.Texture], None]
+DrawFn = Callable[[Camera, CullFn], moderngl.Texture]
+"""draw_fn(camera, cull) renders `camera`'s view into a framebuffer whose depth attachment it has passed to
+`cull` after any clear (cull fills it and restores the bound framebuffer), draws with depth test LESS (so only
+pixels left at depth 1 are shaded), and returns the colour texture (RGBA8, the synthesizer's size)."""
+
+
+@dataclass
+class StereoResult:
+    """The synthesized other eye. Textures belong to the synthesizer and are overwritten by its next call."""
+
+    color: moderngl.Texture   # RGBA8 sRGB, GL rows (bottom first)
+    mask: moderngl.Texture    # RG8: r = disoccluded (patched), g = conservative edge reject
+    camera: Camera            # the other eye
+
+    def read_color(self) -> np.ndarray:
+        """(H, W, 3) uint8, top row first."""
+        return read_texture(self.color, 4, "u1")[..., :3]
+
+    def read_disocclusion(self) -> np.ndarray:
+        """(H, W) bool: pixels the dominant eye did not see (filled by the Patcher)."""
+        return read_texture(self.mask, 2, "u1")[..., 0] > 127
+
+    def read_rerender_mask(self) -> np.ndarray:
+        """(H, W) bool: pixels mode 2 re-renders (disocclusions and conservative edge rejects)."""
+        m = read_texture(self.mask, 2, "u1")
+        return (m[..., 0] > 127) | (m[..., 1] > 127)
+
+
+class StereoSynthesizer:
+    """Makes the other eye of a `width` x `height` stereo pair from the dominant eye's colour and depth.
+
+    `ipd` is the eye separation (metres); `dominant` says which eye is rendered ("left" makes the right eye);
+    the ImBuffer is `intermediate_scale` (0, 1] of the eye width (full height), trading edge quality for work.
+    Tuning: `linear` interpolates source colours along x (YORO's option d); the Patcher kernel is `kernel_rows`
+    high and at most `kernel_max` ImBuffer pixels wide; `continuity` is the relative depth step below which
+    neighbouring pixels count as one surface; the conservative filter flags covered pixels whose source has,
+    within `edge_radius` pixels, a surface whose disparity exceeds theirs by `edge_disparity` pixels.
+    """
+
+    def __init__(self, ctx: moderngl.Context, width: int, height: int, ipd: float = DEFAULT_IPD_M,
+                 intermediate_scale: float = 1.0, dominant: str = "left", *, linear: bool = True,
+                 kernel_rows: int = 3, kernel_max: int = 16, continuity: float = 0.05, edge_radius: float = 2.0,
+                 edge_disparity: float = 0.75, max_stretch: float = 4.0):
+        if int(width) != width or int(height) != height or width <= 0 or height <= 0:
+            raise ValueError(f"StereoSynthesizer: size must be positive integers, got {width}x{height}")
+        if not ipd > 0:
+            raise ValueError(f"StereoSynthesizer: ipd must be > 0 metres, got {ipd}")
+        if not 0 < intermediate_scale <= 1:
+            raise ValueError(f"StereoSynthesizer: intermediate_scale must be in (0, 1], got {intermediate_scale}")
+        if dominant not in ("left", "right"):
+            raise ValueError(f"StereoSynthesizer: dominant must be 'left' or 'right', got {dominant!r}")
+        if kernel_rows < 1 or kernel_max < 1:
+            raise ValueError(f"StereoSynthesizer: kernel_rows and kernel_max must be >= 1, "
+                             f"got {kernel_rows} and {kernel_max}")
+        self.ctx = ctx
+        self.width, self.height = int(width), int(height)
+        self.ipd = float(ipd)
+        self.dominant = dominant
+        self.intermediate_width = max(1, int(round(self.width * intermediate_scale)))
+        self.settings = dict(u_linear=bool(linear), u_kernel_rows=int(kernel_rows), u_kernel_max=int(kernel_max),
+                             u_continuity=float(continuity), u_edge_radius=float(edge_radius),
+                             u_edge_disparity=float(edge_disparity), u_max_stretch=float(max_stretch))
+        self.reproject_cs = compute(ctx, HERE / "yoro_reproject.comp")
+        self.scan_cs = compute(ctx, HERE / "yoro_scan.comp")
+        self.patch_cs = compute(ctx, HERE / "yoro_patch.comp")
+        self.composite_cs = compute(ctx, HERE / "stereo_composite.comp")
+        self.mask_prog = program(ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "stereo_mask.frag.glsl")
+        self.fullscreen = ctx.vertex_array(self.mask_prog, [])
+        iw, w, h = self.intermediate_width, self.width, self.height
+        self.targets = ctx.texture((iw, h), 2, dtype="f4")      # Algorithm 1 output
+        self.imbuffer = ctx.texture((iw, h), 4, dtype="f4")     # Algorithm 2 output
+        self.color = ctx.texture((w, h), 4, dtype="f1")
+        self.mask = ctx.texture((w, h), 2, dtype="f1")
+        self.merged = ctx.texture((w, h), 4, dtype="f1")        # mode 2 composite
+        for tex in (self.targets, self.imbuffer, self.color, self.mask, self.merged):
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self._last: StereoResult | None = None
+
+    # ------------------------------------------------------------------------------------------------ mode 1
+    def other_eye(self, camera: Camera) -> Camera:
+        """The camera of the eye this synthesizer makes, given the dominant eye's camera."""
+        dx = self.ipd if self.dominant == "left" else -self.ipd
+        return camera.with_pose(camera.pose.offset_local([dx, 0.0, 0.0]))
+
+    def _check_inputs(self, color: moderngl.Texture | None, depth: moderngl.Texture, camera: Camera) -> bool:
+        size = (self.width, self.height)
+        if (camera.width, camera.height) != size:
+            raise ValueError(f"synthesize: camera is {camera.width}x{camera.height}, synthesizer is "
+                             f"{self.width}x{self.height}")
+        if color is not None and (not isinstance(color, moderngl.Texture) or color.depth or color.components != 4
+                                  or color.dtype != "f1"):
+            raise ValueError("synthesize: color must be an RGBA8 texture (GBuffer.color), got "
+                             f"{getattr(color, 'components', '?')} components of {getattr(color, 'dtype', color)!r}")
+        if not isinstance(depth, moderngl.Texture) or depth.depth:
+            raise ValueError("synthesize: depth must be GBuffer.position (RGBA32F) or a linear-depth R32F texture, "
+                             "not a depth buffer")
+        if depth.dtype != "f4" or depth.components not in (1, 4):
+            raise ValueError(f"synthesize: depth must be RGBA32F view-space positions or R32F linear depth, got "
+                             f"{depth.components} components of {depth.dtype!r}")
+        for name, tex in (("color", color), ("depth", depth)):
+            if tex is not None and tex.size != size:
+                raise ValueError(f"synthesize: {name} texture is {tex.size[0]}x{tex.size[1]}, synthesizer is "
+                                 f"{self.width}x{self.height}")
+        return depth.components == 4
+
+    def synthesize(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera) -> StereoResult:
+        """The other eye from the dominant eye's colour (RGBA8), depth (GBuffer.position or R32F linear depth)
+        and camera: the three YORO stages, `reproject`, `scan` and `patch`."""
+        self._check_inputs(color, depth, camera)
+        self.reproject(depth, camera)
+        self.scan()
+        return self.patch(color, depth, camera)
+
+    def reproject(self, depth: moderngl.Texture, camera: Camera) -> None:
+        """Algorithm 1 into `targets` (RG32F, ImBuffer size): where each pixel lands in the other eye (x in
+        ImBuffer pixel-centre units) and its depth there."""
+        is_position = self._check_inputs(None, depth, camera)
+        other, f = self.other_eye(camera), camera.frustum
+        matrix = other.projection_matrix() @ other.view_matrix() @ camera.pose.camera_to_world()
+        depth.use(1)
+        set_uniforms(self.reproject_cs, u_depth=1, u_depth_is_position=is_position, u_reproject=gl_matrix(matrix),
+                     u_extents=(f.left / f.near, f.right / f.near, f.bottom / f.near, f.top / f.near))
+        self.targets.bind_to_image(0, read=False, write=True)
+        self.reproject_cs.run((self.intermediate_width + 7) // 8, (self.height + 7) // 8)
+        self.ctx.memory_barrier()
+
+    def scan(self) -> None:
+        """Algorithm 2, `targets` -> `imbuffer` (RGBA32F): per texel (source u - target u, depth, 0, 0) where
+        covered, (left edge x, background depth, width, background-side neighbour x or -1) in a disocclusion."""
+        set_uniforms(self.scan_cs, **self.settings)
+        self.targets.bind_to_image(0, read=True, write=False)
+        self.imbuffer.bind_to_image(1, read=True, write=True)
+        self.scan_cs.run((self.height + 31) // 32)
+        self.ctx.memory_barrier()
+
+    def patch(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera) -> StereoResult:
+        """Algorithm 3, `imbuffer` + the dominant eye's colour and depth -> the other eye's colour and mask."""
+        is_position = self._check_inputs(color, depth, camera)
+        f = camera.frustum
+        focal_px = self.width * f.near / (f.right - f.left)
+        color.use(0)
+        depth.use(1)
+        set_uniforms(self.patch_cs, u_color=0, u_depth=1, u_depth_is_position=is_position,
+                     u_disparity_scale=focal_px * self.ipd, **self.settings)
+        self.imbuffer.bind_to_image(0, read=True, write=False)
+        self.color.bind_to_image(1, read=False, write=True)
+        self.mask.bind_to_image(2, read=False, write=True)
+        self.patch_cs.run((self.width + 7) // 8, (self.height + 7) // 8)
+        self.ctx.memory_barrier()
+        self._last = StereoResult(self.color, self.mask, self.other_eye(camera))
+        return self._last
+
+    def read_imbuffer(self) -> np.ndarray:
+        """The ImBuffer as (H, intermediate width, 4) float32, top row first (see `scan`)."""
+        return read_texture(self.imbuffer, 4, "f4")
+
+    def synthesize_gbuffer(self, gb: GBuffer) -> StereoResult:
+        """`synthesize` from a rendered G-buffer (its lit colour, view positions and camera)."""
+        if gb.camera is None:
+            raise ValueError("synthesize_gbuffer: the G-buffer has no camera (render it first)")
+        return self.synthesize(gb.color, gb.position, gb.camera)
+
+    # ------------------------------------------------------------------------------------------------ mode 2
+    def cull(self, depth_texture: moderngl.Texture, result: StereoResult | None = None) -> None:
+        """Write the culling mask of `result` (the last one by default) into a depth attachment: 0 where the
+        reprojection is kept, 1 where the pixel must be re-rendered. Leaves depth testing on with func LESS and
+        the previously bound framebuffer bound."""
+        result = result or self._last
+        if result is None:
+            raise ValueError("cull: nothing synthesized yet")
+        if not isinstance(depth_texture, moderngl.Texture) or not depth_texture.depth:
+            raise ValueError("cull: expected a depth texture (the draw's depth attachment)")
+        if depth_texture.size != (self.width, self.height):
+            raise ValueError(f"cull: depth texture is {depth_texture.size[0]}x{depth_texture.size[1]}, "
+                             f"synthesizer is {self.width}x{self.height}")
+        ctx = self.ctx
+        previous = ctx.fbo
+        fbo = ctx.framebuffer(depth_attachment=depth_texture)
+        try:
+            fbo.use()
+            ctx.enable(moderngl.DEPTH_TEST)
+            ctx.depth_func = "1"  # always: every pixel gets the mask's depth
+            result.mask.use(0)
+            set_uniforms(self.mask_prog, u_mask=0)
+            self.fullscreen.render(moderngl.TRIANGLES, vertices=3)
+        finally:
+            ctx.depth_func = "<"
+            if previous is not None:
+                previous.use()
+            fbo.release()
+
+    def rerender_disoccluded(self, draw_fn: DrawFn, result: StereoResult | None = None) -> StereoResult:
+        """Mode 2: re-render only the masked pixels of the other eye with `draw_fn` (see `DrawFn`) and composite
+        them with the reprojected ones. Returns a result whose colour is the composite."""
+        result = result or self._last
+        if result is None:
+            raise ValueError("rerender_disoccluded: call synthesize first")
+        rendered = draw_fn(result.camera, lambda tex: self.cull(tex, result))
+        if not isinstance(rendered, moderngl.Texture) or rendered.size != (self.width, self.height):
+            raise ValueError(f"rerender_disoccluded: draw_fn must return a {self.width}x{self.height} colour "
+                             f"texture, got {rendered!r}")
+        result.color.use(0)
+        rendered.use(1)
+        result.mask.use(2)
+        set_uniforms(self.composite_cs, u_reprojected=0, u_rerendered=1, u_mask=2)
+        self.merged.bind_to_image(0, read=False, write=True)
+        self.composite_cs.run((self.width + 7) // 8, (self.height + 7) // 8)
+        self.ctx.memory_barrier()
+        return StereoResult(self.merged, result.mask, result.camera)
+
+    def release(self) -> None:
+        for obj in (self.fullscreen, self.targets, self.imbuffer, self.color, self.mask, self.merged):
+            obj.release()
+
+
+def deferred_draw_fn(renderer, t: float = 0.0) -> DrawFn:
+    """A `DrawFn` for `render.renderer.DeferredRenderer` at time `t`: geometry pass into its own G-buffer over
+    the culling depth (culled pixels stay empty, so the lighting pass treats them as cheap sky), then the
+    lighting pass. The G-buffer last drawn is `draw_fn.gbuffer`."""
+    targets: dict[tuple[int, int], GBuffer] = {}
+
+    def draw(camera: Camera, cull: CullFn) -> moderngl.Texture:
+        key = (camera.width, camera.height)
+        if key not in targets:
+            targets[key] = GBuffer(renderer.ctx, *key)
+        gb = targets[key]
+        gb.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0)
+        cull(gb.depth)
+        gb.geometry_fbo.use()
+        renderer.ctx.enable(moderngl.DEPTH_TEST)
+        renderer.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
+        renderer.draw_geometry(camera, t)
+        gb.camera = camera
+        renderer.lighting_pass(gb, t)
+        draw.gbuffer = gb
+        return gb.color
+
+    return draw
+
+
+@dataclass
+class StereoBenchmark:
+    """One stereo frame three ways, and what each cost (milliseconds, GPU finished)."""
+
+    left: np.ndarray            # dominant eye (H, W, 3) uint8
+    synthesized: np.ndarray     # mode 1: YORO reprojection + Patcher
+    rerendered: np.ndarray      # mode 2: reprojection + re-rendered disocclusions / edges
+    truth: np.ndarray           # the other eye rendered normally
+    disoccluded_fraction: float
+    rerender_fraction: float
+    synthesize_ms: float
+    rerender_ms: float          # mode 2's draw + composite (after synthesize)
+    render_ms: float            # rendering the other eye normally (geometry + lighting)
+
+
+def benchmark_stereo(renderer, camera: Camera, t: float = 0.0, synthesizer: StereoSynthesizer | None = None,
+                     repeats: int = 3) -> StereoBenchmark:
+    """Render the dominant eye of head `camera` (eyes `synthesizer.ipd` apart), then make the other eye by YORO,
+    by mode 2 and by rendering it; times are the median of `repeats` runs after one warm-up."""
+    ctx = renderer.ctx
+    synth = synthesizer or StereoSynthesizer(ctx, camera.width, camera.height)
+    left_pose, right_pose = camera.pose.stereo_eyes(synth.ipd)
+    dominant = camera.with_pose(left_pose if synth.dominant == "left" else right_pose)
+    draw = deferred_draw_fn(renderer, t)
+
+    def timed(fn):
+        ctx.finish()
+        t0 = time.perf_counter()
+        out = fn()
+        ctx.finish()
+        return out, (time.perf_counter() - t0) * 1e3
+
+    synth_ms, rerender_ms, render_ms = [], [], []
+    for _ in range(repeats + 1):
+        gb = renderer.gbuffer(dominant, t)
+        left = gb.read_color()
+        result, ms1 = timed(lambda: synth.synthesize_gbuffer(gb))
+        synthesized = result.read_color()
+        merged, ms2 = timed(lambda: synth.rerender_disoccluded(draw, result))
+        rerendered = merged.read_color()
+        _, ms3 = timed(lambda: renderer.gbuffer(result.camera, t))
+        synth_ms.append(ms1), rerender_ms.append(ms2), render_ms.append(ms3)
+    truth = renderer.gbuffer(result.camera, t).read_color()
+    fractions = float(result.read_disocclusion().mean()), float(result.read_rerender_mask().mean())
+    if synthesizer is None:
+        synth.release()
+    return StereoBenchmark(left, synthesized, rerendered, truth, *fractions, float(np.median(synth_ms[1:])),
+                           float(np.median(rerender_ms[1:])), float(np.median(render_ms[1:])))

@@ -1,0 +1,74 @@
+#version 430
+// YORO Algorithm 2 (Reprojector stage 2), one invocation per row, so no two threads ever write one texel.
+// Sweep 1 turns "where each source pixel lands" into "where each target pixel comes from": every source pixel
+// writes the target pixel nearest to where it lands, and neighbours on one surface also fill the target pixels
+// between them (sub-pixel source positions). Overlaps keep the nearest depth. Sweep 2 finds the target pixels
+// nobody wrote (disocclusions) and records in each its run's left edge, width, and which neighbour is the
+// background (the farther one), for the Patcher.
+layout(local_size_x = 32) in;
+#include "stereo_common.glsl"
+
+layout(rg32f, binding = 0) readonly uniform image2D u_targets;
+layout(rgba32f, binding = 1) uniform image2D u_imbuffer;
+uniform float u_max_stretch;   // widest target gap (ImBuffer pixels) bridged between two neighbours
+
+const float UNSET = -1.0;
+
+void put(int t, int y, int w, float src_x, float depth) {
+    if (t < 0 || t >= w) return;
+    vec4 cur = imageLoad(u_imbuffer, ivec2(t, y));
+    if (cur.z != 0.0 || depth < cur.y)  // empty, or nearer than what is there: nearest wins
+        imageStore(u_imbuffer, ivec2(t, y), vec4((src_x - float(t)) / float(w), depth, 0.0, 0.0));
+}
+
+// Two neighbouring source pixels on one surface whose landing spots are in order and close enough.
+bool bridges(vec2 a, vec2 b) {
+    float gap = b.x - a.x;
+    return gap > 0.0 && gap <= u_max_stretch && same_surface(a.y, b.y);
+}
+
+void main() {
+    int y = int(gl_GlobalInvocationID.x);
+    ivec2 size = imageSize(u_imbuffer);
+    if (y >= size.y) return;
+    int w = size.x;
+    for (int t = 0; t < w; ++t) imageStore(u_imbuffer, ivec2(t, y), vec4(0.0, SKY_DEPTH, UNSET, -1.0));
+
+    // Sweep 1: scatter along the row. A pixel bridged to a neighbour covers the target pixels up to it by
+    // interpolation; its own nearest target pixel is written only on a side no bridge covers.
+    vec2 right = vec2(0.0);
+    bool bridged_right = false;
+    for (int x = w - 1; x >= 0; --x) {
+        vec2 c = imageLoad(u_targets, ivec2(x, y)).xy;
+        vec2 left = x > 0 ? imageLoad(u_targets, ivec2(x - 1, y)).xy : c;
+        bool bridged_left = x > 0 && bridges(left, c);
+        bridged_right = x < w - 1 && bridges(c, right);
+        if (bridged_right) {
+            float gap = right.x - c.x;
+            for (int t = int(ceil(c.x)); float(t) < right.x; ++t) {
+                float f = (float(t) - c.x) / gap;
+                put(t, y, w, float(x) + f, mix(c.y, right.y, f));
+            }
+        }
+        float t0 = round(c.x);
+        bool covered = (bridged_right && t0 >= c.x) || (bridged_left && t0 < c.x);
+        if (abs(t0) < 1e8 && !covered) put(int(t0), y, w, float(x) + (t0 - c.x), c.y);
+        right = c;
+    }
+
+    // Sweep 2: record each disocclusion run.
+    int t = 0;
+    while (t < w) {
+        if (imageLoad(u_imbuffer, ivec2(t, y)).z == 0.0) { ++t; continue; }
+        int a = t;
+        while (t < w && imageLoad(u_imbuffer, ivec2(t, y)).z != 0.0) ++t;
+        int b = t - 1;
+        float dl = a > 0 ? imageLoad(u_imbuffer, ivec2(a - 1, y)).y : -1.0;
+        float dr = b < w - 1 ? imageLoad(u_imbuffer, ivec2(b + 1, y)).y : -1.0;
+        float edge = -1.0, depth = SKY_DEPTH;
+        if (dl >= 0.0 || dr >= 0.0) {
+            if (dr >= dl) { edge = float(b + 1); depth = dr; } else { edge = float(a - 1); depth = dl; }
+        }
+        for (int k = a; k <= b; ++k) imageStore(u_imbuffer, ivec2(k, y), vec4(float(a), depth, float(b - a + 1), edge));
+    }
+}
