@@ -170,7 +170,7 @@ class ATWClient(_BaselineClient):
 
     def receive(self, payload: FramePayload) -> None:
         pose = _payload_pose(payload, self.method)
-        rgb = self.decoder.decode(payload.video)  # raises VideoError
+        rgb = self.decoder.decode(payload.video, payload.frame_id)  # raises VideoError
         if rgb is not None:
             self._commit_color(payload, pose, rgb)
 
@@ -199,7 +199,7 @@ class MeshWarpClient(_BaselineClient):
     def receive(self, payload: FramePayload) -> None:
         pose = _payload_pose(payload, self.method)
         # Video first (raises VideoError): the decoder follows the stream even if the depth turns out bad.
-        rgb = self.decoder.decode(payload.video)
+        rgb = self.decoder.decode(payload.video, payload.frame_id)
         depth = decode_depth(payload.geometry, max_pixels=self.max_depth_pixels)
         if rgb is None:
             return

@@ -18,6 +18,12 @@ from render.quadcache import QuadCache
 from render.quadmesh import MeshLayer, MeshView, QuadMesh
 
 
+# Fill-in layers sit farther along the eye rays (hidden 0.3%; wide FOV 2%, its relaxed half-resolution planes are
+# coarser), so where they overlap the main layer at about the same depth (the wide view overlaps the frame's
+# border; relaxed hidden-layer planes graze visible surfaces) the main layer shows.
+FILL_DEPTH_SCALE = {LayerKind.HIDDEN: 1.003, LayerKind.WIDE: 1.02}
+
+
 class QuasarClient(MethodClient):
     """Also the QuadStream baseline's client (`method=Method.QUADSTREAM`): its frames are all references."""
 
@@ -63,7 +69,7 @@ class QuasarClient(MethodClient):
                                 f"the client has {self.reference_id if self.reference_id >= 0 else 'none'}")
         t0 = time.perf_counter()
         try:
-            image = self.decoder.decode(payload.video)
+            image = self.decoder.decode(payload.video, payload.frame_id)
         except VideoError:
             if not is_reference:
                 self._needs_reference = True  # the decoder waits for the next IDR, i.e. the next reference
@@ -86,7 +92,7 @@ class QuasarClient(MethodClient):
         elif LayerKind.UPDATED in kinds:
             self.cache.update(frame.layers[kinds.index(LayerKind.UPDATED)].quads)
         mesh_layers = [MeshLayer(self.cache.quads, self.reference_camera, self.reference_rect)]
-        mesh_layers += [MeshLayer(l.quads, cam, l.atlas_rect) for l, cam in layers
+        mesh_layers += [MeshLayer(l.quads, cam, l.atlas_rect, FILL_DEPTH_SCALE.get(l.kind, 1.0)) for l, cam in layers
                         if l.kind in (LayerKind.REVEALED, LayerKind.HIDDEN, LayerKind.WIDE)]
         ms["quad_update"] = (time.perf_counter() - t0) * 1e3
 

@@ -59,6 +59,7 @@ class AtlasDecoder:
     def __init__(self) -> None:
         self._codec: av.VideoCodecContext | None = _new_codec()
         self._needs_keyframe = True
+        self._last_sequence: int | None = None
         self.decode_ms = 0.0
         """Wall-clock time of the last :meth:`decode` call, in milliseconds."""
 
@@ -67,11 +68,15 @@ class AtlasDecoder:
         """True until an IDR has been decoded, and again after any decode error."""
         return self._needs_keyframe
 
-    def decode(self, data: bytes) -> np.ndarray | None:
+    def decode(self, data: bytes, sequence: int | None = None) -> np.ndarray | None:
         """Decode one Annex-B access unit.
 
         Args:
             data: exactly one H.264 access unit (bytes-like).
+            sequence: the access unit's position in the stream (the sender's frame id), if known. A non-IDR
+                unit whose sequence does not follow the last decoded one would predict from a picture that was
+                lost on the way: it raises VideoError and the decoder waits for the next IDR. An older one
+                (reordered) is refused the same way.
 
         Returns:
             The decoded atlas as a uint8 array (height, width, 3), RGB, top row
@@ -87,11 +92,11 @@ class AtlasDecoder:
         """
         start = time.perf_counter()
         try:
-            return self._decode(data)
+            return self._decode(data, sequence)
         finally:
             self.decode_ms = (time.perf_counter() - start) * 1000.0
 
-    def _decode(self, data: bytes) -> np.ndarray | None:
+    def _decode(self, data: bytes, sequence: int | None) -> np.ndarray | None:
         if self._codec is None:
             raise RuntimeError("AtlasDecoder is closed")
         if not isinstance(data, (bytes, bytearray, memoryview)):
@@ -108,6 +113,11 @@ class AtlasDecoder:
         is_idr = _NAL_IDR_SLICE in nal_types
         if self._needs_keyframe and not is_idr:
             return None
+        if (sequence is not None and not is_idr and self._last_sequence is not None
+                and sequence != self._last_sequence + 1):
+            missing = (f"frames {self._last_sequence + 1}..{sequence - 1} are missing"
+                       if sequence > self._last_sequence else f"it is older than frame {self._last_sequence}")
+            raise self._fail(f"access unit {sequence} cannot be decoded: {missing}; waiting for a keyframe")
 
         try:
             frames = self._codec.decode(av.Packet(data))
@@ -130,11 +140,13 @@ class AtlasDecoder:
             raise self._fail(f"decoded picture could not be converted to RGB: {exc}") from exc
         if is_idr:
             self._needs_keyframe = False
+        self._last_sequence = sequence
         return np.ascontiguousarray(rgb, dtype=np.uint8)
 
     def _fail(self, message: str) -> VideoError:
         """Drop decoder state, wait for the next IDR, and build the error to raise."""
         self._needs_keyframe = True
+        self._last_sequence = None
         if self._codec is not None:
             self._codec = _new_codec()
         return VideoError(message)

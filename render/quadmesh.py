@@ -26,6 +26,9 @@ class MeshLayer:
     quads: QuadSet
     camera: Camera
     atlas_rect: tuple[int, int, int, int]
+    # >1 draws the layer slightly farther along each eye ray (same pixels), so that where a fill-in layer
+    # (hidden, wide FOV) overlaps the main one at nearly the same depth, the main one wins the depth test.
+    depth_scale: float = 1.0
 
 
 def quads_to_gpu(quads: QuadSet) -> np.ndarray:
@@ -102,7 +105,8 @@ class QuadMesh:
         set_uniforms(self.prog, u_atlas=0, u_proj=gl_matrix(camera.projection_matrix()))
         view = camera.view_matrix()
         for layer, first, n in self.layers:
-            set_uniforms(self.prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()))
+            set_uniforms(self.prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()),
+                         u_depth_scale=float(layer.depth_scale))
             self.vao.render(moderngl.TRIANGLES, vertices=24 * n, first=24 * first)
 
 

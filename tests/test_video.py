@@ -128,6 +128,21 @@ def test_truncated_access_unit_raises_and_recovers_at_next_idr(clip_crf18):
     assert not decoder.needs_keyframe
 
 
+def test_lost_access_unit_is_detected_by_sequence_and_recovers_at_next_idr(clip_crf18):
+    sources, encoded = clip_crf18
+    decoder = AtlasDecoder()
+    for i in range(3):
+        assert decoder.decode(encoded[i].data, sequence=i) is not None
+    with pytest.raises(VideoError, match="frames 3..3 are missing"):   # access unit 3 was lost on the link
+        decoder.decode(encoded[4].data, sequence=4)
+    assert decoder.needs_keyframe
+    rgb = decoder.decode(encoded[5].data, sequence=5)                 # the forced IDR resyncs
+    assert rgb is not None and not decoder.needs_keyframe
+    assert peak_signal_noise_ratio(sources[5], rgb, data_range=255) >= 30.0
+    with pytest.raises(VideoError, match="older than frame 5"):       # a reordered straggler
+        decoder.decode(encoded[3].data, sequence=3)
+
+
 def test_truncated_idr_raises(clip_crf18):
     _, encoded = clip_crf18
     decoder = AtlasDecoder()

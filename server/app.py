@@ -1,0 +1,437 @@
+"""The live quadcast server (``quadcast server``): an asyncio process streaming one method to several clients.
+
+Per connection (:class:`Session`): the client's :class:`protocol.messages.Hello` is checked (version, method,
+size, token) before anything is allocated; then a :class:`sim.live_io.GLWorker` thread with its own GL context
+renders and encodes, so the event loop only moves messages. Poses go into a :class:`PosePredictor`; a 30 Hz
+ticker starts one encode at a time (when the worker is idle) for the pose predicted at the frame's display time;
+encoded frames wait in a bounded :class:`FrameQueue` until the socket takes them.
+
+Robustness: a malformed message or any failure ends only its session, after an :class:`ErrorMessage`; incoming
+messages are capped at ``max_message_bytes``; at most ``max_sessions`` sessions run at once; a connection that
+sends no Hello within ``handshake_timeout`` is closed. The server binds 127.0.0.1 unless told otherwise, and
+refuses any other bind without a shared-secret token.
+"""
+from __future__ import annotations
+
+import asyncio
+import collections
+import hmac
+import ipaddress
+import itertools
+import logging
+import time
+from dataclasses import dataclass, field
+
+from protocol.errors import ProtocolError
+from protocol.frame import FramePayload
+from protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
+                               ReferenceRequest, Welcome)
+from render.camera import Pose
+from server.prediction import PosePredictor
+from sim.live_io import Channel, GLWorker, TcpChannel, is_self_contained
+from sim.methods import METHODS, MethodConfig
+
+__all__ = ["ServerConfig", "FrameQueue", "Session", "LiveServer", "check_bind"]
+
+log = logging.getLogger("quadcast.server")
+
+MAX_PREDICTION_S = 0.5
+"""Never extrapolate the pose further ahead than this (the predictor is kinematic)."""
+
+
+@dataclass
+class ServerConfig:
+    """What a :class:`LiveServer` serves and its limits."""
+
+    scene: str = "builtin:courtyard"
+    methods: tuple[str, ...] = ("quasar",)
+    host: str = "127.0.0.1"
+    port: int = 0
+    token: str = ""
+    server_hz: float = 30.0
+    max_width: int = 1920
+    max_height: int = 1080
+    viewcell_m: float = 0.5
+    reference_every: int = 5
+    crf: float = 23.0
+    lead_ms: float = 40.0               # display time - render start, beyond the measured encode time
+    predict: bool = True
+    max_sessions: int = 4
+    max_message_bytes: int = 64 * 1024  # client -> server messages are small (Hello, poses, requests)
+    queue_frames: int = 3               # per-session send queue
+    handshake_timeout: float = 10.0
+    idle_timeout: float = 30.0          # a session that sends nothing for this long is closed
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.methods if m not in METHODS]
+        if not self.methods or unknown:
+            raise ValueError(f"--method: unknown method(s) {', '.join(unknown) or '(none)'}; "
+                             f"methods are {', '.join(METHODS)}")
+        if not (0 < self.server_hz <= 240):
+            raise ValueError(f"--hz: expected 0 < hz <= 240, got {self.server_hz}")
+        if self.max_sessions < 1 or self.queue_frames < 1:
+            raise ValueError("--max-sessions and the queue length must be >= 1")
+        check_bind(self.host, self.token)
+
+
+def check_bind(host: str, token: str) -> None:
+    """Refuse to listen on a non-loopback address without a shared-secret token."""
+    try:
+        loopback = ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = host == "localhost"
+    if not loopback and not token:
+        raise ValueError(f"--host {host}: binding a non-loopback address needs --token (a shared secret that "
+                         f"clients send in Hello)")
+
+
+# ----------------------------------------------------------------------------------------------- queue
+
+@dataclass
+class QueueStats:
+    """What a :class:`FrameQueue` did."""
+
+    pushed: int = 0
+    dropped_stale: int = 0     # queued frames made useless by a newer self-contained frame
+    dropped_new: int = 0       # frames refused because the queue was full or their chain was broken
+
+
+class FrameQueue:
+    """A bounded per-session send queue that drops stale frames without breaking decoding.
+
+    Every frame that is not self-contained (a QUASAR residual, or an H.264 P-frame of any method) depends on all
+    frames since the last self-contained one (its reference / IDR), so the queue never drops a frame that a
+    queued or later one depends on:
+
+    - a self-contained frame replaces everything still queued (newest wins: nothing after it needs them);
+    - a dependent frame is queued if there is room; when the queue is full it is refused instead, the chain is
+      *broken*, and every later dependent frame is refused too until a self-contained one arrives. :meth:`push`
+      returns True in that case: the caller must make its next frame self-contained (``request_reference``).
+
+    So the queue holds at most ``max_frames`` frames, and what it sends is always decodable in order.
+    """
+
+    def __init__(self, max_frames: int = 3) -> None:
+        if max_frames < 1:
+            raise ValueError(f"FrameQueue: max_frames must be >= 1, got {max_frames}")
+        self.max_frames = max_frames
+        self._frames: collections.deque[FramePayload] = collections.deque()
+        self._ready = asyncio.Event()
+        self.broken = False
+        self.stats = QueueStats()
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def push(self, payload: FramePayload, self_contained: bool | None = None) -> bool:
+        """Offer a frame; returns True when the caller must send a self-contained frame next."""
+        if self_contained is None:
+            self_contained = is_self_contained(payload)
+        self.stats.pushed += 1
+        if self_contained:
+            self.stats.dropped_stale += len(self._frames)
+            self._frames.clear()
+            self._frames.append(payload)
+            self.broken = False
+        elif self.broken or len(self._frames) >= self.max_frames:
+            self.stats.dropped_new += 1
+            self.broken = True
+        else:
+            self._frames.append(payload)
+        if self._frames:
+            self._ready.set()
+        return self.broken
+
+    async def pop(self) -> FramePayload:
+        """The oldest queued frame (waits for one)."""
+        while not self._frames:
+            self._ready.clear()
+            await self._ready.wait()
+        return self._frames.popleft()
+
+
+# --------------------------------------------------------------------------------------------- session
+
+class SessionError(Exception):
+    """Ends a session with an ErrorMessage(code, text)."""
+
+    def __init__(self, code: int, text: str) -> None:
+        super().__init__(text)
+        self.code = code
+
+
+@dataclass
+class SessionStats:
+    """Per-session counters (logged when the session ends)."""
+
+    poses: int = 0
+    frames_encoded: int = 0
+    frames_sent: int = 0
+    bytes_sent: int = 0
+    reference_requests: int = 0
+    encode_ms: list = field(default_factory=list)
+
+
+class Session:
+    """One client: handshake, pose intake, encode ticker and sender over a :class:`Channel`."""
+
+    def __init__(self, server: "LiveServer", channel: Channel, session_id: int) -> None:
+        self.server, self.channel, self.id = server, channel, session_id
+        self.cfg = server.config
+        self.predictor = PosePredictor(smooth=False)
+        self.queue = FrameQueue(self.cfg.queue_frames)
+        self.stats = SessionStats()
+        self.worker: GLWorker | None = None
+        self.method_server = None
+        self.want_reference = False
+        self.last_pose: PoseUpdate | None = None
+        self.last_pose_local = 0.0
+        self.encode_ema_s = 0.1
+        self._busy = False
+        self._done = asyncio.Event()
+
+    # -- handshake
+
+    def _check_hello(self, hello: Hello) -> None:
+        cfg = self.cfg
+        if hello.version != PROTOCOL_VERSION:
+            raise SessionError(ErrorCode.UNSUPPORTED_VERSION,
+                               f"Hello.version {hello.version} is not supported (server speaks {PROTOCOL_VERSION})")
+        if cfg.token and not hmac.compare_digest(hello.token.encode(), cfg.token.encode()):
+            raise SessionError(ErrorCode.UNAUTHORIZED, "Hello.token: wrong or missing token")
+        if hello.method not in cfg.methods:
+            raise SessionError(ErrorCode.UNKNOWN_METHOD,
+                               f"Hello.method {hello.method!r} is not served here (served: {', '.join(cfg.methods)})")
+        w, h = hello.width, hello.height
+        if w > cfg.max_width or h > cfg.max_height or w < 16 or h < 16 or w % 2 or h % 2:
+            raise SessionError(ErrorCode.BAD_REQUEST, f"Hello size {w}x{h}: expected even sizes from 16x16 to "
+                                                      f"{cfg.max_width}x{cfg.max_height}")
+
+    def _setup(self, hello: Hello) -> None:
+        """On the GL thread: the renderer and the method's server for this client."""
+        from render.renderer import DeferredRenderer
+        from sim.methods import make_server
+        renderer = DeferredRenderer(self.server.scene, self.worker.ctx)
+        config = MethodConfig(width=hello.width, height=hello.height, fovy_deg=hello.fovy_deg,
+                              viewcell_radius=self.cfg.viewcell_m, reference_every=self.cfg.reference_every,
+                              crf=self.cfg.crf)
+        self.method_server = make_server(hello.method, renderer, config)
+
+    async def run(self) -> None:
+        """The whole session; never raises (errors end it with an ErrorMessage)."""
+        tasks: list[asyncio.Task] = []
+        try:
+            try:
+                msg = await asyncio.wait_for(self.channel.recv(), self.cfg.handshake_timeout)
+            except asyncio.TimeoutError:
+                raise SessionError(ErrorCode.PROTOCOL, f"no Hello within {self.cfg.handshake_timeout:g} s") from None
+            if msg is None:
+                return
+            if not isinstance(msg, Hello):
+                raise SessionError(ErrorCode.PROTOCOL, f"expected Hello first, got {type(msg).__name__}")
+            self._check_hello(msg)
+            if self.server.active >= self.cfg.max_sessions:
+                raise SessionError(ErrorCode.BAD_REQUEST, f"server full ({self.cfg.max_sessions} sessions)")
+            self.server.active += 1
+            try:
+                self.worker = GLWorker(f"session-{self.id}")
+                await self.worker.call(self._setup, msg)
+                await self.channel.send(Welcome(self.id, self.cfg.server_hz))
+                log.info("session %d (%s): %s %dx%d", self.id, self.channel.peer, msg.method, msg.width, msg.height)
+                tasks = [asyncio.create_task(self._reader(), name=f"s{self.id}-reader"),
+                         asyncio.create_task(self._ticker(), name=f"s{self.id}-ticker"),
+                         asyncio.create_task(self._sender(), name=f"s{self.id}-sender")]
+                done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+                for t in done:
+                    if not t.cancelled() and t.exception() is not None:
+                        raise t.exception()
+            finally:
+                self.server.active -= 1
+        except SessionError as exc:
+            log.warning("session %d (%s): %s", self.id, self.channel.peer, exc)
+            await self._send_error(exc.code, str(exc))
+        except ProtocolError as exc:
+            log.warning("session %d (%s): malformed input: %s", self.id, self.channel.peer, exc)
+            await self._send_error(ErrorCode.PROTOCOL, f"malformed message: {exc}")
+        except (ConnectionError, OSError) as exc:
+            log.info("session %d (%s): connection lost: %s", self.id, self.channel.peer, exc)
+        except Exception as exc:  # noqa: BLE001 -- a session must never take the server down
+            log.exception("session %d (%s): internal error", self.id, self.channel.peer)
+            await self._send_error(ErrorCode.INTERNAL, f"internal server error: {type(exc).__name__}: {exc}")
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            await self.channel.close()
+            await self._release()
+            log.info("session %d ended: %d poses, %d frames encoded, %d sent (%d bytes), %d reference requests, "
+                     "queue dropped %d stale + %d new", self.id, self.stats.poses, self.stats.frames_encoded,
+                     self.stats.frames_sent, self.stats.bytes_sent, self.stats.reference_requests,
+                     self.queue.stats.dropped_stale, self.queue.stats.dropped_new)
+
+    async def _send_error(self, code: int, text: str) -> None:
+        try:
+            await asyncio.wait_for(self.channel.send(ErrorMessage(int(code), text[:1000])), 2.0)
+        except Exception:  # noqa: BLE001 -- the peer may be gone already
+            pass
+
+    async def _release(self) -> None:
+        if self.worker is None:
+            return
+        worker, self.worker = self.worker, None
+        if self.method_server is not None:
+            try:
+                await worker.call(self.method_server.close)
+            except Exception:  # noqa: BLE001
+                log.exception("session %d: closing the method server failed", self.id)
+        await asyncio.get_running_loop().run_in_executor(None, worker.close)
+
+    # -- tasks
+
+    async def _reader(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            try:
+                msg = await asyncio.wait_for(self.channel.recv(), self.cfg.idle_timeout)
+            except asyncio.TimeoutError:
+                raise SessionError(ErrorCode.PROTOCOL, f"nothing received for {self.cfg.idle_timeout:g} s") from None
+            if msg is None or isinstance(msg, Bye):
+                return
+            if isinstance(msg, PoseUpdate):
+                self.stats.poses += 1
+                try:
+                    accepted = self.predictor.observe(msg.t_client, msg.position, msg.quat)
+                except ValueError as exc:
+                    raise ProtocolError(f"PoseUpdate: {exc}") from None
+                if accepted:
+                    self.last_pose, self.last_pose_local = msg, loop.time()
+            elif isinstance(msg, ReferenceRequest):
+                self.stats.reference_requests += 1
+                self.want_reference = True
+                log.info("session %d: reference requested (%s)", self.id, msg.reason)
+            elif isinstance(msg, ErrorMessage):
+                log.warning("session %d: client error %d: %s", self.id, msg.code, msg.text)
+                return
+            else:
+                raise SessionError(ErrorCode.PROTOCOL, f"unexpected {type(msg).__name__} from a client")
+
+    def _target(self, now: float) -> tuple[Pose, float]:
+        """The pose to render and its display time (client clock) for a frame started at loop time ``now``."""
+        client_now = self.last_pose.t_client + (now - self.last_pose_local)
+        lead = min(self.encode_ema_s + self.cfg.lead_ms / 1e3, MAX_PREDICTION_S)
+        show_at = client_now + lead
+        if self.cfg.predict and len(self.predictor) >= 1:
+            p, q = self.predictor.predict(show_at)
+        else:
+            p, q = self.last_pose.position, self.last_pose.quat
+        return Pose(p, q), show_at
+
+    def _encode(self, pose: Pose, t: float, reference: bool) -> FramePayload:
+        """On the GL thread."""
+        if reference:
+            self.method_server.request_reference()
+        return self.method_server.encode(pose, t)
+
+    async def _ticker(self) -> None:
+        loop = asyncio.get_running_loop()
+        period = 1.0 / self.cfg.server_hz
+        next_tick = loop.time()
+        while True:
+            next_tick = max(next_tick + period, loop.time())
+            await asyncio.sleep(max(0.0, next_tick - loop.time()))
+            if self.last_pose is None or self._busy:
+                continue
+            pose, show_at = self._target(loop.time())
+            reference, self.want_reference = self.want_reference, False
+            self._busy = True
+            t0 = time.perf_counter()
+            try:
+                payload = await self.worker.call(self._encode, pose, show_at, reference)
+            finally:
+                self._busy = False
+            dt = time.perf_counter() - t0
+            self.encode_ema_s = 0.8 * self.encode_ema_s + 0.2 * dt
+            self.stats.frames_encoded += 1
+            self.stats.encode_ms.append(dt * 1e3)
+            if self.queue.push(payload):
+                self.want_reference = True    # a frame was refused: the next one must stand alone
+
+    async def _sender(self) -> None:
+        while True:
+            payload = await self.queue.pop()
+            before = self.channel.bytes_out
+            await self.channel.send(Frame.from_payload(payload))
+            self.stats.frames_sent += 1
+            self.stats.bytes_sent += self.channel.bytes_out - before
+
+
+# ---------------------------------------------------------------------------------------------- server
+
+class LiveServer:
+    """Accepts connections (TCP, or WebRTC through :mod:`sim.webrtc`) and runs a :class:`Session` for each."""
+
+    def __init__(self, config: ServerConfig, transport: str = "tcp") -> None:
+        if transport not in ("tcp", "webrtc"):
+            raise ValueError(f"--transport: expected tcp or webrtc, got {transport!r}")
+        from render.scene import load_scene
+        self.config, self.transport = config, transport
+        self.scene = load_scene(config.scene)
+        self.active = 0
+        self._ids = itertools.count(1)
+        self._sessions: set[asyncio.Task] = set()
+        self._tcp: asyncio.AbstractServer | None = None
+        self._rtc = None
+
+    @property
+    def port(self) -> int:
+        if self._tcp is not None:
+            return self._tcp.sockets[0].getsockname()[1]
+        if self._rtc is not None:
+            return self._rtc.port
+        raise RuntimeError("LiveServer.port: not started")
+
+    async def start(self) -> None:
+        cfg = self.config
+        if self.transport == "tcp":
+            self._tcp = await asyncio.start_server(self._on_tcp, cfg.host, cfg.port, limit=1 << 16)
+        else:
+            from sim.webrtc import WebRtcListener
+            self._rtc = WebRtcListener(cfg.host, cfg.port, self.serve_channel,
+                                       max_message_bytes=cfg.max_message_bytes)
+            await self._rtc.start()
+
+    async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await self.serve_channel(TcpChannel(reader, writer, self.config.max_message_bytes))
+
+    async def serve_channel(self, channel: Channel) -> None:
+        """Run one session on an accepted channel until it ends."""
+        task = asyncio.current_task()
+        self._sessions.add(task)
+        try:
+            await Session(self, channel, next(self._ids)).run()
+        finally:
+            self._sessions.discard(task)
+
+    async def close(self) -> None:
+        if self._tcp is not None:
+            self._tcp.close()
+        if self._rtc is not None:
+            await self._rtc.close()
+        for t in list(self._sessions):
+            t.cancel()
+        await asyncio.gather(*self._sessions, return_exceptions=True)
+
+    async def serve_forever(self) -> None:
+        if self._tcp is None and self._rtc is None:
+            await self.start()
+        try:
+            await asyncio.Event().wait()
+        finally:
+            await self.close()
+
+
+def server_summary_line(server: LiveServer) -> str:
+    cfg = server.config
+    return (f"server: listening on {cfg.host}:{server.port} ({server.transport}), scene {cfg.scene}, "
+            f"methods {','.join(cfg.methods)}, {cfg.server_hz:g} Hz")
+
