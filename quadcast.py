@@ -99,9 +99,10 @@ def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames
     from render.scene import load_scene
     from server.quasar import QuasarServer, QuasarSettings
     from server.video import VideoSettings
-    from sim.traces import resolve_trace
+    from sim.traces import Trace, resolve_trace
 
-    scene, trace = load_scene(scene_spec), resolve_trace(trace_spec)
+    scene = load_scene(scene_spec)
+    trace = trace_spec if isinstance(trace_spec, Trace) else resolve_trace(trace_spec)
     if frames < 1:
         raise ValueError(f"--frames must be >= 1, got {frames}")
     times = np.arange(frames) / server_hz
@@ -125,7 +126,7 @@ def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames
     res = [r["bytes_quads"] + r["bytes_video"] for r in records if r["type"] == "residual"]
     total = sum(r["bytes_quads"] + r["bytes_video"] for r in records)
     stats = {
-        "scene": scene_spec, "trace": trace_spec, "size": f"{size[0]}x{size[1]}", "viewcell_m": viewcell,
+        "scene": scene_spec, "trace": trace.name, "size": f"{size[0]}x{size[1]}", "viewcell_m": viewcell,
         "layers": layers, "reference_every": every, "server_hz": server_hz, "frames": records,
         "residual_to_reference_bytes": (float(np.mean(res)) / float(np.mean(ref))) if res and ref else None,
         "mbps_at_30fps": total * 8 / len(records) * 30 / 1e6,
@@ -192,30 +193,24 @@ def cmd_eval(args) -> int:
 # ------------------------------------------------------------------------------------------------- bench
 
 def bench_render(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10) -> list[dict]:
-    """ms/frame of the deferred renderer (G-buffer + shadows + lighting + colour read-back) along builtin:orbit."""
+    """ms/frame of the deferred renderer (G-buffer + shadows + lighting + colour read-back) along each scene's
+    benchmark trace (server.bench.trace_for)."""
     from render.camera import Camera, Pose
     from render.renderer import DeferredRenderer
     from render.scene import SceneError, load_scene
-    from sim.traces import resolve_trace
+    from server.bench import trace_for
 
-    trace = resolve_trace("builtin:orbit")
     rows = []
     for spec in scenes:
         try:
             scene = load_scene(spec)
+            trace = trace_for(spec)
         except SceneError as exc:
             print(f"skip {spec}: {exc}")
             continue
         renderer = DeferredRenderer(scene)
         for w, h in sizes:
             poses = [trace.pose_at(t) for t in np.linspace(0, trace.duration, frames + 1)]
-            if scene.name == "monastery":  # look around inside the monastery's bounds
-                lo, hi = scene.bounds()
-                c = (lo + hi) / 2
-                poses = [(c + [3 * np.cos(a), 1.7 - c[1] + lo[1], 3 * np.sin(a)],
-                          Pose.look_at(c + [3 * np.cos(a), 1.7 - c[1] + lo[1], 3 * np.sin(a)],
-                                       c + [0, 1.5 - c[1] + lo[1], 0]).quat)
-                         for a in np.linspace(0, 2 * np.pi, frames + 1)]
             cams = [Camera.perspective(Pose(p, q), w, h) for p, q in poses]
             renderer.render_color(cams[0], 0.0)  # warm-up: shader compilation, allocation
             t0 = time.perf_counter()
@@ -233,6 +228,9 @@ def cmd_bench(args) -> int:
     scenes = args.scenes.split(",")
     if args.what == "render":
         rows = bench_render(scenes, sizes, args.frames)
+    elif args.what == "server":
+        from server.bench import bench_server
+        rows = bench_server(scenes, sizes, args.frames, quiet=args.quiet)
     else:
         raise ValueError(f"unknown benchmark {args.what!r}")
     if args.json:
@@ -243,12 +241,9 @@ def cmd_bench(args) -> int:
 # -------------------------------------------------------------------------------------------------- demo
 
 def cmd_demo(args) -> int:
-    """The main job on the built-in scene: render the built-in walk and a contact sheet."""
-    out = Path(args.out)
-    paths = render_trace("builtin:courtyard", "builtin:walk", (640, 360), 10, 60, out / "walk", quiet=args.quiet)
-    print(f"demo: rendered {len(paths)} frames of builtin:walk in builtin:courtyard -> {out / 'walk'}")
-    print(f"demo: contact sheet -> {out / 'walk' / 'contact_sheet.png'}")
-    return 0
+    """The live system on the built-in scene: server, link (20±10 ms) and client as three processes on loopback."""
+    from sim.live_demo import run_demo
+    return run_demo(Path(args.out), quiet=args.quiet)
 
 
 # -------------------------------------------------------------------------------------------------- main
@@ -312,7 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("bench", help="print speed figures (not a test)")
-    p.add_argument("what", choices=["render"])
+    p.add_argument("what", choices=["server", "render"])
     p.add_argument("--scenes", default="builtin:courtyard,monastery")
     p.add_argument("--sizes", default="960x540,1920x1080")
     p.add_argument("--frames", type=int, default=10)
@@ -322,6 +317,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the main job on the built-in scene")
     p.add_argument("--out", default="out/demo")
     p.set_defaults(func=cmd_demo)
+
+    from sim.live_cli import add_live_commands
+    add_live_commands(sub)
     return parser
 
 

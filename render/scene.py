@@ -427,9 +427,8 @@ def monastery_scene() -> Scene:
     if not path.exists():
         raise SceneError(f"scene 'monastery': {path} is missing from pybullet_data")
     meshes = load_meshes(path)
-    # The OBJ is Z-up; turn it Y-up.
-    z_up = compose_transform(rotation_deg=(-90, 0, 0))
-    scene = Scene("monastery", [SceneObject(m, z_up) for m in meshes],
+    # The OBJ is already Y-up (floor at y = 0, roofs up to 30 m).
+    scene = Scene("monastery", [SceneObject(m, np.eye(4)) for m in meshes],
                   DirectionalLight(_unit([-0.5, -1.0, -0.35]), intensity=3.0),
                   [PointLight(np.array([x, 2.5, z]), np.array([1.0, 0.75, 0.45]), 4.0, 7.0)
                    for x, z in ((-4, -4), (4, -4), (-4, 4), (4, 4))])

@@ -401,6 +401,32 @@ def _strafe() -> Trace:
     return Trace("builtin:strafe", times, positions, np.zeros((times.size, 3)))
 
 
+def scene_tour(bounds: np.ndarray, duration_s: float = 10.0, speed_mps: float = 1.0, eye_height: float = 1.6,
+               name: str = "tour", centre: tuple[float, float] | None = None, radius: float | None = None) -> Trace:
+    """A walk for any scene: a circle at `speed_mps` around `centre` (x, z; default the centre of `bounds`, a
+    (2, 3) box, y up) of `radius` (default a quarter of the smaller horizontal side), at `eye_height` above the
+    bounds' floor, looking ahead along the circle -- so the view sweeps across the scene. For benchmarks on scenes
+    without a trace of their own."""
+    bounds = np.asarray(bounds, dtype=np.float64)
+    if bounds.shape != (2, 3) or not np.all(np.isfinite(bounds)) or np.any(bounds[1] < bounds[0]):
+        raise TraceError(f"scene_tour: bounds must be a finite (2, 3) [min, max] box, got {bounds!r}")
+    lo, hi = bounds
+    mid = (lo + hi) / 2
+    centre = np.array([mid[0], mid[1], mid[2]] if centre is None else [centre[0], mid[1], centre[1]], np.float64)
+    radius = max(0.25 * min(hi[0] - lo[0], hi[2] - lo[2]), 0.5) if radius is None else float(radius)
+    if radius <= 0:
+        raise TraceError(f"scene_tour: radius must be > 0, got {radius}")
+    times = _uniform_times(duration_s)
+    angle = speed_mps * times / radius
+    y = lo[1] + eye_height
+    positions = np.stack([centre[0] + radius * np.sin(angle), np.full_like(angle, y),
+                          centre[2] + radius * np.cos(angle)], axis=1)
+    # Look tangentially-inward: at a point ahead on the circle, so the camera faces along its path.
+    ahead = np.stack([centre[0] + radius * np.sin(angle + 1.2), np.full_like(angle, y - 0.2),
+                      centre[2] + radius * np.cos(angle + 1.2)], axis=1)
+    return Trace(name, times, positions, look_at_euler(positions, ahead))
+
+
 _BUILTIN_MAKERS: dict[str, Callable[[], Trace]] = {
     "walk": _walk,
     "orbit": _orbit,

@@ -297,3 +297,17 @@ def test_static_and_strafe() -> None:
     np.testing.assert_allclose(strafe.positions[-1], [2, 1.6, 6])
     assert strafe.speed().mean == pytest.approx(1.0)
     np.testing.assert_allclose(strafe.forward(), np.tile([0, 0, -1], (len(strafe), 1)), atol=1e-12)
+
+
+def test_scene_tour_walks_a_circle_inside_the_bounds_at_eye_height():
+    from sim.traces import scene_tour
+    bounds = np.array([[-10.0, 0.0, -6.0], [10.0, 8.0, 6.0]])
+    tour = scene_tour(bounds, duration_s=4.0, speed_mps=1.2, eye_height=1.7)
+    assert np.allclose(tour.positions[:, 1], 1.7)
+    radius = np.hypot(tour.positions[:, 0], tour.positions[:, 2])
+    assert np.allclose(radius, 3.0)                       # a quarter of the smaller horizontal side
+    assert abs(tour.speed().mean - 1.2) < 0.05
+    with pytest.raises(TraceError, match="bounds"):
+        scene_tour(np.zeros(3))
+    with pytest.raises(TraceError, match="radius"):
+        scene_tour(bounds, radius=-1.0)
