@@ -14,6 +14,7 @@ from hypothesis.extra import numpy as hnp
 
 from protocol.errors import ProtocolError
 from protocol.quads import (
+    BLOB_VERSION,
     HEADER_STRUCT,
     LAYER_STRUCT,
     MAX_SIZE_LOG2,
@@ -86,7 +87,7 @@ def rebuild_blob(headers: bytes, raw: bytes) -> bytes:
     return headers + zstandard.ZstdCompressor(level=3).compress(raw)
 
 
-def make_header(*, magic=b"QDCQ", version=1, flags=0, frame_id=1, frame_type=0, reference_id=0,
+def make_header(*, magic=b"QDCQ", version=BLOB_VERSION, flags=0, frame_id=1, frame_type=0, reference_id=0,
                 layer_count=1, payload_size=0) -> bytes:
     return HEADER_STRUCT.pack(magic, version, flags, frame_id, frame_type, reference_id, layer_count, payload_size)
 
@@ -407,10 +408,16 @@ def test_random_byte_flips_never_crash() -> None:
 def test_decoded_columns_are_validated(tamper: str, pattern: str) -> None:
     frame = small_frame(5)
     headers, raw = split_blob(encode_quad_frame(frame), len(frame.layers))
-    n = frame.quad_count
-    words = np.frombuffer(raw, "<u4", count=n).copy()
-    depth_at = 6 * n
-    offsets_at = 10 * n
+    n, m = frame.quad_count, frame.offset_count * 16
+    # Multi-byte columns are byte planes: un-shuffle them, tamper, shuffle back.
+    def column(at, dtype, count):
+        item = np.dtype(dtype).itemsize
+        return np.frombuffer(raw, np.uint8, count * item, at).reshape(item, count).T.copy().view(dtype).ravel()
+
+    def put(at, values):
+        raw[at:at + values.nbytes] = np.ascontiguousarray(values.view(np.uint8).reshape(len(values), -1).T).tobytes()
+
+    words, depth, offsets = column(0, "<u4", n), column(6 * n, "<f4", n), column(10 * n, "<f2", m)
     raw = bytearray(raw)
     if tamper == "size_log2":
         words[0] = (words[0] & ~np.uint32(0x3F << 24)) | np.uint32(12 << 24)
@@ -419,11 +426,13 @@ def test_decoded_columns_are_validated(tamper: str, pattern: str) -> None:
     elif tamper == "flattened_flip":
         words[0] ^= np.uint32(1 << 31)
     elif tamper == "nan_depth":
-        raw[depth_at:depth_at + 4] = np.float32(np.nan).tobytes()
+        depth[0] = np.nan
     elif tamper == "inf_offset":
         assert frame.offset_count > 0
-        raw[offsets_at:offsets_at + 2] = np.float16(np.inf).tobytes()
-    raw[: 4 * n] = words.tobytes()
+        offsets[0] = np.inf
+    put(0, words)
+    put(6 * n, depth)
+    put(10 * n, offsets)
     with pytest.raises(ProtocolError, match=pattern):
         decode_quad_frame(rebuild_blob(headers, bytes(raw)))
 
@@ -432,7 +441,7 @@ def test_decoded_columns_are_validated(tamper: str, pattern: str) -> None:
     "header, pattern",
     [
         (make_header(magic=b"QDCX"), r"header\.magic: expected b'QDCQ', got b'QDCX'"),
-        (make_header(version=2), r"header\.version: expected 1, got 2"),
+        (make_header(version=BLOB_VERSION + 1), rf"header\.version: expected {BLOB_VERSION}, got {BLOB_VERSION + 1}"),
         (make_header(flags=4), r"header\.flags"),
         (make_header(frame_type=7), r"header\.frame_type.*got 7"),
         (make_header(layer_count=17), r"header\.layer_count: expected at most 16, got 17"),
