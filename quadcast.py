@@ -4,7 +4,7 @@
     quadcast encode   --scene S --trace T --size WxH --frames N --viewcell R [--every K] --out DIR
     quadcast predict  --trace T --latency MS --jitter MS [--no-predict] [--smooth] [--seed N]
     quadcast eval     --scene S --trace T --method M --latency MS --jitter MS --viewcell R --size WxH --out DIR
-    quadcast bench    render [--sizes 960x540,1920x1080] [--scenes builtin:courtyard,monastery]
+    quadcast bench    render|client|stereo [--sizes 960x540,1920x1080] [--scenes builtin:courtyard,monastery]
     quadcast demo     [--out DIR]
 
 Each subcommand's --help says more. Errors in the user's input print one line naming what was wrong and exit 2.
@@ -185,7 +185,7 @@ def cmd_eval(args) -> int:
     if "stereo" in summary:
         st = summary["stereo"]
         print(f"stereo (synthesized eye): SSIM {st['ssim']:.4f} PSNR {st['psnr']:.2f} dB FLIP {st['flip']:.4f}, "
-              f"cost {100 * st['cost_ratio']:.1f}% of rendering the eye")
+              f"cost {100 * st['cost_ratio']:.1f}% of two renders")
     print(f"report: {out / 'report.html'}")
     return 0
 
@@ -231,6 +231,12 @@ def cmd_bench(args) -> int:
     elif args.what == "server":
         from server.bench import bench_server
         rows = bench_server(scenes, sizes, args.frames, quiet=args.quiet)
+    elif args.what == "client":
+        from client.bench import bench_client
+        rows = bench_client(scenes, sizes, args.frames, quiet=args.quiet)
+    elif args.what == "stereo":
+        from client.bench import bench_stereo
+        rows = bench_stereo(scenes, sizes[0], args.frames, quiet=args.quiet)
     else:
         raise ValueError(f"unknown benchmark {args.what!r}")
     if args.json:
@@ -307,7 +313,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("bench", help="print speed figures (not a test)")
-    p.add_argument("what", choices=["server", "render"])
+    p.add_argument("what", choices=["server", "render", "client", "stereo"],
+                   help="stereo (YORO quality and cost ratio) runs at the first of --sizes")
     p.add_argument("--scenes", default="builtin:courtyard,monastery")
     p.add_argument("--sizes", default="960x540,1920x1080")
     p.add_argument("--frames", type=int, default=10)

@@ -8,11 +8,12 @@ import moderngl
 import numpy as np
 
 from client.method import MethodClient
+from client.stereo import STEREO_MODES, MeshStereo, StereoFrame
 from client.video import AtlasDecoder, VideoError
 from protocol.errors import ProtocolError
 from protocol.frame import FramePayload, Method, PayloadType
 from protocol.quads import FrameType, LayerKind, QuadFrame, decode_quad_frame
-from render.camera import Camera, Frustum, Pose
+from render.camera import DEFAULT_IPD_M, Camera, Frustum, Pose
 from render.gl import gl_context
 from render.quadcache import QuadCache
 from render.quadmesh import MeshLayer, MeshView, QuadMesh
@@ -47,6 +48,7 @@ class QuasarClient(MethodClient):
         self._needs_reference = True
         self.last_frame_id = -1
         self.stats: dict = {}
+        self._stereo: MeshStereo | None = None  # made on the first stereo frame
 
     @property
     def needs_reference(self) -> bool:
@@ -137,3 +139,33 @@ class QuasarClient(MethodClient):
         image = self.view.read_color()
         self.stats.setdefault("ms", {})["render"] = (time.perf_counter() - t0) * 1e3
         return image
+
+    # ------------------------------------------------------------------------------------------------ stereo
+    def stereo_frame(self, pose: Pose, mode: str = "yoro", with_rendered: bool = False, dominant: str = "left",
+                     ipd: float = DEFAULT_IPD_M) -> StereoFrame:
+        """Both eyes at head `pose` from one mesh render (client.stereo.MeshStereo): the dominant eye is drawn
+        from the quad mesh, the other synthesized from its colour and depth (`mode` "yoro"; "rerender" also
+        re-renders the other eye's disoccluded pixels from the mesh; "both" renders both eyes). `with_rendered`
+        also renders the other eye normally, for its image and the cost ratio. Before any payload, both eyes
+        are black. The stage times are also in `stats["stereo_ms"]`."""
+        stereo = self._stereo
+        if stereo is None or stereo.synth.dominant != dominant or stereo.synth.ipd != float(ipd):
+            if stereo is not None:
+                stereo.release()
+            stereo = self._stereo = MeshStereo(self.ctx, self.width, self.height, ipd, dominant)
+        head = Camera(pose, self.frustum, self.width, self.height)
+        if self.atlas is None:
+            if mode not in STEREO_MODES:
+                raise ValueError(f"stereo mode must be one of {', '.join(STEREO_MODES)}, got {mode!r}")
+            black = np.zeros((self.height, self.width, 3), np.uint8)
+            return StereoFrame(black, black.copy(), dominant, mode, stereo.eye_cameras(head)[1],
+                               {"dominant": 0.0, "synthesize": 0.0, "rerender": 0.0})
+        frame = stereo.frame(self.mesh, self.view, self.atlas, head, mode, with_rendered)
+        self.stats["stereo_ms"] = dict(frame.ms)
+        return frame
+
+    def render_stereo(self, pose: Pose, mode: str = "yoro") -> tuple[np.ndarray, np.ndarray]:
+        """(left, right) eye images at head `pose`: the left eye rendered, the right one made by `mode` (see
+        `stereo_frame`)."""
+        frame = self.stereo_frame(pose, mode)
+        return frame.left, frame.right

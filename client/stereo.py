@@ -17,6 +17,16 @@ covered pixels within 2 px of a nearer surface in the source (the conservative m
 edge ghosting) -- are re-rendered by the caller's draw function, culled everywhere else by a depth mask (depth 0
 where the reprojection is kept), and composited with the reprojected pixels.
 
+On the client (`MeshStereo`, used by `QuasarClient.stereo_frame` / `render_stereo`): the dominant eye is drawn
+from the quad mesh into the client's `MeshView`, whose colour and view-position targets are the synthesizer's
+input; mode 2 re-renders the masked pixels of the other eye from the same mesh. Clients without depth (ATW,
+MeshWarp) only support rendering both eyes (`stereo_pair(..., "both")`).
+
+Cost ratio (`StereoFrame.cost_ratio`, `quadcast eval --stereo`, `quadcast bench stereo`), as YORO reports it (51.4%):
+(dominant-eye render + synthesis [+ mode 2's masked re-render and composite]) / (dominant-eye render + other-eye
+render), the other eye rendered normally from the same source; each stage timed from `ctx.finish()` to
+`ctx.finish()`, read-backs excluded. Below 1 means one render plus synthesis is cheaper than two renders.
+
 All images on the GPU use GL's row order (bottom first); `read_*` methods return numpy images top row first.
 """
 from __future__ import annotations
@@ -29,8 +39,9 @@ from typing import Callable
 import moderngl
 import numpy as np
 
-from render.camera import DEFAULT_IPD_M, Camera, gl_matrix
+from render.camera import DEFAULT_IPD_M, Camera, Pose, gl_matrix
 from render.gl import RENDER_DIR, compute, program, set_uniforms
+from render.quadmesh import MeshView, QuadMesh
 from render.renderer import GBuffer, read_texture
 
 HERE = Path(__file__).resolve().parent
@@ -324,3 +335,131 @@ def benchmark_stereo(renderer, camera: Camera, t: float = 0.0, synthesizer: Ster
         synth.release()
     return StereoBenchmark(left, synthesized, rerendered, truth, *fractions, float(np.median(synth_ms[1:])),
                            float(np.median(rerender_ms[1:])), float(np.median(render_ms[1:])))
+
+
+# ------------------------------------------------------------------------------------- from the quad mesh
+
+STEREO_MODES = ("yoro", "rerender", "both")
+"""How a client makes the second eye: `yoro` = mode 1 (reprojection + Patcher), `rerender` = mode 2 (mode 1, then
+the disoccluded and edge pixels re-rendered from the mesh), `both` = both eyes rendered (the reference cost)."""
+
+
+@dataclass
+class StereoFrame:
+    """One stereo frame made by a client: both eyes, and what each stage cost (ms, GPU finished before and after).
+
+    `ms` has `dominant` (rendering the dominant eye), `synthesize` (YORO's three passes), `rerender` (mode 2's
+    masked draw + composite; 0 otherwise) and, when the other eye was also rendered for reference, `other`
+    (rendering the other eye normally). Read-backs are not timed."""
+
+    left: np.ndarray                      # (H, W, 3) uint8
+    right: np.ndarray
+    dominant: str                         # "left" or "right": the eye rendered
+    mode: str
+    other_camera: Camera                  # the eye that was synthesized
+    ms: dict
+    rendered_other: np.ndarray | None = None   # the other eye rendered from the same mesh (with_rendered)
+    disoccluded_fraction: float = 0.0
+    rerender_fraction: float = 0.0
+    rerender_mask: np.ndarray | None = None    # (H, W) bool: the pixels mode 2 re-renders (None for "both")
+
+    @property
+    def synthesized(self) -> np.ndarray:
+        """The eye that was synthesized (for `both`, rendered)."""
+        return self.right if self.dominant == "left" else self.left
+
+    @property
+    def cost_ratio(self) -> float | None:
+        """YORO's cost measure: (dominant render + synthesis [+ mode 2 re-render]) / (dominant render + other-eye
+        render), from this frame's timings; None unless the other eye was also rendered (`with_rendered`)."""
+        if "other" not in self.ms:
+            return None
+        if self.mode == "both":
+            return 1.0
+        spent = self.ms["dominant"] + self.ms["synthesize"] + self.ms["rerender"]
+        return spent / (self.ms["dominant"] + self.ms["other"])
+
+
+class MeshStereo:
+    """Stereo for a client that shows a `render.quadmesh.QuadMesh`: the dominant eye is drawn into the client's
+    `MeshView`, whose colour and view-position targets feed the `StereoSynthesizer`; mode 2 re-renders the masked
+    pixels of the other eye from the same mesh into a second `MeshView` (`MeshView.render_masked`)."""
+
+    def __init__(self, ctx: moderngl.Context, width: int, height: int, ipd: float = DEFAULT_IPD_M,
+                 dominant: str = "left", **synth_options):
+        self.ctx = ctx
+        self.synth = StereoSynthesizer(ctx, width, height, ipd, dominant=dominant, **synth_options)
+        self.other_view = MeshView(ctx, width, height)
+        # Warm-up: drivers compile shaders on first use; keep that out of the first frame's timings.
+        probe = Camera.perspective(Pose([0.0, 0.0, 0.0]), width, height)
+        self.synth.synthesize(self.other_view.color, self.other_view.position, probe)
+        ctx.finish()
+
+    def eye_cameras(self, head: Camera) -> tuple[Camera, Camera]:
+        """(dominant, other) eye cameras of a head camera: each eye half the IPD from the head, as
+        `Pose.stereo_eyes`."""
+        left, right = head.pose.stereo_eyes(self.synth.ipd)
+        dominant = head.with_pose(left if self.synth.dominant == "left" else right)
+        return dominant, self.synth.other_eye(dominant)
+
+    def frame(self, mesh: QuadMesh, view: MeshView, atlas: moderngl.Texture, head: Camera, mode: str = "yoro",
+              with_rendered: bool = False) -> StereoFrame:
+        """Both eyes of `head` from `mesh` (drawn with `atlas`) and the client's `view` (a MeshView of this size)."""
+        if mode not in STEREO_MODES:
+            raise ValueError(f"stereo mode must be one of {', '.join(STEREO_MODES)}, got {mode!r}")
+        if (view.width, view.height) != (self.synth.width, self.synth.height):
+            raise ValueError(f"stereo: the view is {view.width}x{view.height}, the synthesizer "
+                             f"{self.synth.width}x{self.synth.height}")
+        ctx = self.ctx
+        dominant_cam, other_cam = self.eye_cameras(head)
+        ms = {"dominant": 0.0, "synthesize": 0.0, "rerender": 0.0}
+
+        def timed(key, fn):
+            ctx.finish()
+            t0 = time.perf_counter()
+            out = fn()
+            ctx.finish()
+            ms[key] = (time.perf_counter() - t0) * 1e3
+            return out
+
+        timed("dominant", lambda: view.render(mesh, dominant_cam, atlas))
+        dominant_img = view.read_color()
+        rendered = None
+        if with_rendered or mode == "both":
+            timed("other", lambda: self.other_view.render(mesh, other_cam, atlas))
+            rendered = self.other_view.read_color()
+        fractions, mask = (0.0, 0.0), None
+        if mode == "both":
+            other_img = rendered
+        else:
+            result = timed("synthesize", lambda: self.synth.synthesize(view.color, view.position, dominant_cam))
+            if mode == "rerender":
+                def draw(camera: Camera, cull: CullFn) -> moderngl.Texture:
+                    self.other_view.render_masked(mesh, camera, atlas, cull)
+                    return self.other_view.color
+                result = timed("rerender", lambda: self.synth.rerender_disoccluded(draw, result))
+            other_img = result.read_color()
+            mask = result.read_rerender_mask()
+            fractions = (float(result.read_disocclusion().mean()), float(mask.mean()))
+        left, right = (dominant_img, other_img) if self.synth.dominant == "left" else (other_img, dominant_img)
+        return StereoFrame(left, right, self.synth.dominant, mode, other_cam, ms, rendered, *fractions, mask)
+
+    def release(self) -> None:
+        self.synth.release()
+        for obj in (self.other_view.fbo, self.other_view.color, self.other_view.position, self.other_view.depth):
+            obj.release()
+
+
+def stereo_pair(client, pose, mode: str = "yoro") -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) eye images of any `client.method.MethodClient` at head `pose`. Clients that keep a depth
+    buffer (QuasarClient: quasar, quadstream) support every mode of `STEREO_MODES`; the others (ATW, MeshWarp) only
+    `both`, which renders each eye with `client.render`."""
+    if mode not in STEREO_MODES:
+        raise ValueError(f"stereo mode must be one of {', '.join(STEREO_MODES)}, got {mode!r}")
+    if hasattr(client, "render_stereo"):
+        return client.render_stereo(pose, mode)
+    if mode != "both":
+        raise ValueError(f"the {getattr(client, 'name', type(client).__name__)} client cannot synthesize an eye "
+                         f"(it keeps no depth of what it shows); use mode 'both' or a quasar/quadstream client")
+    left, right = pose.stereo_eyes()
+    return client.render(left), client.render(right)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import moderngl
 import numpy as np
@@ -126,6 +127,19 @@ class MeshView:
         self.fbo.use()
         self.fbo.clear(*self.clear_color, 0.0, depth=1.0)
         self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
+        mesh.draw(camera, atlas)
+
+    def render_masked(self, mesh: QuadMesh, camera: Camera, atlas: moderngl.Texture,
+                      cull: Callable[[moderngl.Texture], None]) -> None:
+        """`render`, but only where `cull` leaves the depth buffer at 1: after the clear, `cull(self.depth)` writes
+        the mask as depth (0 = keep out) and the mesh is drawn with depth test LESS (client.stereo's mode 2)."""
+        self.fbo.use()
+        self.fbo.clear(*self.clear_color, 0.0, depth=1.0)
+        cull(self.depth)
+        self.fbo.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.depth_func = "<"
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
         mesh.draw(camera, atlas)
 

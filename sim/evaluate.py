@@ -104,7 +104,7 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     smooth = spec.smooth if spec.smooth is not None else spec.latency_ms >= 50
     rc = ReplayConfig(latency_ms=spec.latency_ms, jitter_ms=spec.jitter_ms, rate_mbit=spec.rate_mbit,
                       loss=spec.loss, predict=spec.predict, smooth=smooth, seed=spec.seed)
-    stereo = _stereo_scorer(renderer, spec) if spec.stereo else None
+    stereo = _stereo_scorer(renderer, spec, client) if spec.stereo else None
     scorer = _Scorer(renderer, spec.width, spec.height, cfg.fovy_deg, stereo)
     bar = tqdm(total=spec.frames, desc=f"eval {spec.method}", unit="frame", disable=quiet, leave=False)
     client_ms: list[dict] = []
@@ -150,8 +150,9 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
         ref = [s["bytes_geometry"] + s["bytes_video"] for s in stats if s.get("type") == "reference"]
         res = [s["bytes_geometry"] + s["bytes_video"] for s in stats if s.get("type") == "residual"]
         summary["residual_to_reference_bytes"] = float(np.mean(res) / np.mean(ref)) if ref and res else None
-    if stereo is not None and scorer.stereo_rows:
-        summary["stereo"] = {k: float(np.mean([r[k] for r in scorer.stereo_rows]))
+    stereo_rows = [r for r in scorer.stereo_rows if r is not None]
+    if stereo is not None and stereo_rows:
+        summary["stereo"] = {k: float(np.mean([r[k] for r in stereo_rows]))
                              for k in ("ssim", "psnr", "flip", "cost_ratio")}
     if out is not None:
         write_outputs(Path(out), summary, scored, [f for _, f in scorer.worst])
@@ -166,10 +167,25 @@ def write_outputs(out: Path, summary: dict, records: list[dict], worst: list) ->
                       title=f"quadcast {summary.get('method')} on {summary.get('trace')}")
 
 
-def _stereo_scorer(renderer: DeferredRenderer, spec: EvalSpec):
-    """Per scored frame: the right eye synthesized from the displayed (left) eye vs a true right-eye render."""
-    from client.stereo import stereo_figures
-    return lambda camera, t, image: stereo_figures(renderer, camera, t)
+def _stereo_scorer(renderer: DeferredRenderer, spec: EvalSpec, client):
+    """`--stereo`: per scored frame, the client renders the left eye of the displayed head pose from its quad mesh
+    and synthesizes the right eye with YORO (client.stereo, mode "yoro"). Returns, per frame: `ssim`, `psnr`,
+    `flip` of the synthesized right eye against the ground-truth right eye (the deferred renderer at that eye's
+    pose, IPD 63 mm), and `cost_ratio` = (left-eye render + synthesis) / (left-eye render + right-eye render), the
+    right eye rendered from the same mesh and all stages timed GPU-finished (wall clock, so not seed-stable).
+    Frames before the client has any payload give None (not scored)."""
+    if not hasattr(client, "stereo_frame"):
+        raise ValueError(f"--stereo: the {spec.method} client keeps no depth to synthesize an eye from; "
+                         f"stereo works with the quasar and quadstream methods")
+
+    def score(camera: Camera, t: float, image: np.ndarray) -> dict | None:
+        if client.last_frame_id < 0:
+            return None
+        frame = client.stereo_frame(camera.pose, mode="yoro", with_rendered=True)
+        truth = renderer.render(camera.with_pose(frame.other_camera.pose), t).color
+        s = compare(truth, frame.synthesized)
+        return {"ssim": s.ssim, "psnr": s.psnr, "flip": s.flip, "cost_ratio": frame.cost_ratio}
+    return score
 
 
 # ----------------------------------------------------------------------------------------------- sweep
@@ -208,7 +224,15 @@ def run_sweep(base: EvalSpec, out: Path, methods=SWEEP_METHODS, latencies=SWEEP_
 # ------------------------------------------------------------------------------------- live recordings
 
 def evaluate_recording(directory: str | Path) -> dict:
-    """Score a live client's recording (recording.json + displayed PNGs) against ground truth rendered now."""
+    """Score a live client's recording (recording.json + displayed PNGs) against ground truth rendered now.
+
+    recording.json holds ``method``, ``scene``, ``trace``, ``size`` [w, h], ``fovy_deg``, ``frames`` (per recorded
+    display frame: ``index``, ``t`` scene time, true ``position``/``quat``, ``image`` path relative to the
+    directory, ``frame_id`` of the newest applied server frame or -1, and optional ``age_ms``,
+    ``pose_error_cm``/``pose_error_deg``, ``client_ms``) and an optional ``summary`` of run-wide figures (Mbps on
+    the socket, frame counts, ...), which is merged into the summary. Writes summary.json (the fields of
+    ``quadcast eval`` plus ``live``), frames.csv and report.html to the directory and returns the summary.
+    """
     from PIL import Image
 
     directory = Path(directory)
@@ -218,28 +242,45 @@ def evaluate_recording(directory: str | Path) -> dict:
     scorer = _Scorer(renderer, w, h, rec.get("fovy_deg", 60.0))
     client_ms = []
     for f in rec["frames"]:
+        if f.get("frame_id", 0) < 0:
+            continue   # shown before the first payload arrived: black for every method, not scored
         image = np.asarray(Image.open(directory / f["image"]).convert("RGB"))
+        if image.shape[:2] != (h, w):
+            raise ValueError(f"{f['image']}: image is {image.shape[1]}x{image.shape[0]}, recording says {w}x{h}")
         pose = Pose(f["position"], f["quat"])
-        extra = {k: f[k] for k in ("frame_id", "age_ms", "bytes_video", "bytes_geometry") if k in f}
+        extra = {k: f[k] for k in ("frame_id", "age_ms", "pose_error_cm", "pose_error_deg", "bytes_video",
+                                   "bytes_geometry") if k in f}
         scorer.score(f["index"], f["t"], pose, image, extra)
         client_ms.append(f.get("client_ms", {}))
-    scored = [r for r in scorer.records if r.get("frame_id", 0) >= 0]
+    scored = scorer.records
+    run = dict(rec.get("summary", {}))
     summary = {
         "method": rec["method"], "scene": rec["scene"], "trace": rec.get("trace"),
-        "latency_ms": rec.get("latency_ms"), "viewcell_m": rec.get("viewcell_m"), "size": f"{w}x{h}",
-        "frames": len(scored), "mbps": rec.get("mbps"),
+        "latency_ms": run.pop("latency_ms", None), "jitter_ms": run.pop("jitter_ms", None),
+        "rate_mbit": run.pop("rate_mbit", None), "loss": run.pop("loss", None),
+        "viewcell_m": run.pop("viewcell_m", rec.get("viewcell_m")), "size": f"{w}x{h}",
+        "frames": len(scored), "display_frames": run.pop("display_frames", None), "every": run.pop("every", None),
+        "mbps": run.pop("mbps", rec.get("mbps")), "mbps_video": run.pop("mbps_video", None),
+        "mbps_geometry": run.pop("mbps_geometry", None),
         "flip": float(np.mean([r["flip"] for r in scored])) if scored else None,
         "ssim": float(np.mean([r["ssim"] for r in scored])) if scored else None,
         "psnr": float(np.mean([r["psnr"] for r in scored])) if scored else None,
+        "pose_error_cm": _stats(r.get("pose_error_cm") for r in scored),
+        "pose_error_deg": _stats(r.get("pose_error_deg") for r in scored),
         "client_ms": _mean_stages(client_ms), "live": True,
     }
+    summary.update(run)
     write_outputs(directory, summary, scored, [f for _, f in scorer.worst])
     return summary
 
 
 def strip_wallclock(summary: dict) -> dict:
-    """The summary without its wall-clock figures (what must be identical for the same seed)."""
-    return {k: v for k, v in summary.items() if k not in WALLCLOCK_KEYS}
+    """The summary without its wall-clock figures (what must be identical for the same seed): the per-stage ms
+    and the stereo cost ratio, which is a ratio of measured times."""
+    out = {k: v for k, v in summary.items() if k not in WALLCLOCK_KEYS}
+    if isinstance(out.get("stereo"), dict):
+        out["stereo"] = {k: v for k, v in out["stereo"].items() if k != "cost_ratio"}
+    return out
 
 
 def format_summary(s: dict) -> str:

@@ -9,11 +9,13 @@ QUASAR's trace format has one pose per line::
     x y z pitch yaw roll t_ms
 
 (metres, degrees, milliseconds; usually 60 Hz). Blank lines and lines
-starting with ``#`` are ignored. Angles convert to a rotation with
-``Rotation.from_euler("YXZ", [yaw, pitch, roll], degrees=True)``: yaw about
-world Y, then pitch about the camera's X, then roll about its Z. So
-yaw = pitch = 0 looks down -Z, positive yaw turns left (towards -X) and
-positive pitch looks up.
+starting with ``#`` are ignored. Angles are those QUASAR writes with
+``glm::eulerAngles``: ``R = Rz(roll) * Ry(yaw) * Rx(pitch)`` about world
+axes, i.e. ``Rotation.from_euler("xyz", [pitch, yaw, roll], degrees=True)``.
+yaw is the middle angle, so at yaw = +-90° pitch and roll may flip by 180°
+together between two lines (gimbal lock) -- same orientation, no jump. With
+roll = 0 this is yaw about world Y after pitch about X: yaw = pitch = 0 looks
+down -Z, positive yaw turns left (towards -X) and positive pitch looks up.
 
 Besides files, a few traces are built in code (:data:`BUILTIN_TRACES`) and
 can be named as ``"builtin:NAME"`` in :func:`resolve_trace`.
@@ -44,8 +46,8 @@ __all__ = [
 
 #: Sample rate of QUASAR traces and of the built-in traces (Hz).
 TRACE_HZ = 60.0
-#: Euler sequence used by the trace format (intrinsic yaw, pitch, roll).
-EULER_SEQ = "YXZ"
+#: Euler sequence of the trace format: extrinsic x (pitch), y (yaw), z (roll), as glm::eulerAngles.
+EULER_SEQ = "xyz"
 #: Number of whitespace-separated fields on a trace line.
 FIELDS_PER_LINE = 7
 
@@ -57,13 +59,12 @@ class TraceError(ValueError):
 def euler_to_rotation(euler_deg: np.ndarray) -> Rotation:
     """Rotation(s) for trace angles given as ``(pitch, yaw, roll)`` degrees, shape (3,) or (N, 3)."""
     euler = np.asarray(euler_deg, dtype=np.float64)
-    return Rotation.from_euler(EULER_SEQ, euler[..., [1, 0, 2]], degrees=True)
+    return Rotation.from_euler(EULER_SEQ, euler, degrees=True)
 
 
 def rotation_to_euler(rotation: Rotation) -> np.ndarray:
-    """Trace angles ``(pitch, yaw, roll)`` in degrees for a rotation (wrapped to (-180, 180])."""
-    yaw_pitch_roll = rotation.as_euler(EULER_SEQ, degrees=True)
-    return yaw_pitch_roll[..., [1, 0, 2]]
+    """Trace angles ``(pitch, yaw, roll)`` in degrees for a rotation (yaw in [-90, 90], the others (-180, 180])."""
+    return rotation.as_euler(EULER_SEQ, degrees=True)
 
 
 def unwrap_degrees(angles_deg: np.ndarray) -> np.ndarray:
@@ -194,7 +195,14 @@ class Trace:
         """Unwrapped ``(pitch, yaw, roll)`` of interpolated rotations, kept on the same 360° branch as the source."""
         raw = rotation_to_euler(Rotation.from_quat(quats))
         reference = np.stack([np.interp(query, self.times, self.euler_deg[:, k]) for k in range(3)], axis=1)
-        return raw + 360.0 * np.round((reference - raw) / 360.0)
+        # Every rotation has two angle triples: (p, y, r) and (p + 180, 180 - y, r + 180). Take the one nearer
+        # the linearly interpolated source angles, on their 360° branch.
+        candidates = []
+        for angles in (raw, raw * [1.0, -1.0, 1.0] + [180.0, 180.0, 180.0]):
+            angles = angles + 360.0 * np.round((reference - angles) / 360.0)
+            candidates.append(angles)
+        far = np.abs(candidates[0] - reference).sum(1) > np.abs(candidates[1] - reference).sum(1)
+        return np.where(far[:, None], candidates[1], candidates[0])
 
     def resample(self, hz: float) -> Trace:
         """The trace sampled uniformly at ``hz`` from its first time (the last sample lands at or before the end)."""

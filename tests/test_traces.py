@@ -311,3 +311,14 @@ def test_scene_tour_walks_a_circle_inside_the_bounds_at_eye_height():
         scene_tour(np.zeros(3))
     with pytest.raises(TraceError, match="radius"):
         scene_tour(bounds, radius=-1.0)
+
+
+def test_glm_gimbal_flip_at_yaw_90_is_not_a_turn() -> None:
+    # QUASAR writes glm::eulerAngles: near yaw -90° pitch and roll flip by 180° together between lines.
+    trace = parse_trace("0 0 0 -179.6499 -88.3998 180.0 0\n"
+                        "0 0 0 -0.9576 -90.0 0.0 16.7\n"
+                        "0 0 0 -1.0984 -89.7555 0.0013 33.3\n")
+    steps = (trace.rotations[1:] * trace.rotations[:-1].inv()).magnitude()
+    assert np.degrees(steps).max() < 5.0          # a head turn, not a 180° flip
+    # yaw -90: a quarter turn to the right of -Z, i.e. looking down +X, nearly level.
+    np.testing.assert_allclose(trace.rotations[1].apply(FORWARD), [1.0, 0.0, 0.0], atol=0.03)
