@@ -4,7 +4,11 @@
     quadcast encode   --scene S --trace T --size WxH --frames N --viewcell R [--every K] --out DIR
     quadcast predict  --trace T --latency MS --jitter MS [--no-predict] [--smooth] [--seed N]
     quadcast eval     --scene S --trace T --method M --latency MS --jitter MS --viewcell R --size WxH --out DIR
-    quadcast bench    render|client|stereo [--sizes 960x540,1920x1080] [--scenes builtin:courtyard,monastery]
+    quadcast eval     --sweep --size WxH [--frames N] [--every K] --out DIR
+    quadcast bench    server|client|stereo|render [--sizes 960x540,1920x1080] [--scenes builtin:courtyard,monastery]
+    quadcast server   --port P [--method quasar] [--transport tcp|webrtc] [--host 127.0.0.1] [--token T]
+    quadcast link     --listen P --to HOST:PORT --delay 20ms --jitter 10ms [--rate 200mbit] [--loss 0.5%]
+    quadcast client   --connect HOST:PORT --trace T [--size WxH] [--duration S] [--transport tcp|webrtc] --out DIR
     quadcast demo     [--out DIR]
 
 Each subcommand's --help says more. Errors in the user's input print one line naming what was wrong and exit 2.
@@ -321,7 +325,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="also write the figures to this JSON file")
     p.set_defaults(func=cmd_bench)
 
-    p = sub.add_parser("demo", help="the main job on the built-in scene")
+    p = sub.add_parser("demo", help="the live system on the built-in scene: server, link (20±10 ms) and client "
+                                    "processes on loopback; prints Mbps and FLIP/SSIM")
     p.add_argument("--out", default="out/demo")
     p.set_defaults(func=cmd_demo)
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 from protocol.errors import ProtocolError
 from protocol.frame import FramePayload
-from protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
+from protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Hello, PoseUpdate,
                                ReferenceRequest, Welcome)
 from render.camera import Pose
 from server.prediction import PosePredictor
@@ -264,10 +264,12 @@ class Session:
             await asyncio.gather(*tasks, return_exceptions=True)
             await self.channel.close()
             await self._release()
-            log.info("session %d ended: %d poses, %d frames encoded, %d sent (%d bytes), %d reference requests, "
-                     "queue dropped %d stale + %d new", self.id, self.stats.poses, self.stats.frames_encoded,
-                     self.stats.frames_sent, self.stats.bytes_sent, self.stats.reference_requests,
-                     self.queue.stats.dropped_stale, self.queue.stats.dropped_new)
+            enc = self.stats.encode_ms
+            log.info("session %d ended: %d poses, %d frames encoded (mean %.0f ms each), %d sent (%d bytes), "
+                     "%d reference requests, queue dropped %d stale + %d new", self.id, self.stats.poses,
+                     self.stats.frames_encoded, sum(enc) / len(enc) if enc else 0.0, self.stats.frames_sent,
+                     self.stats.bytes_sent, self.stats.reference_requests, self.queue.stats.dropped_stale,
+                     self.queue.stats.dropped_new)
 
     async def _send_error(self, code: int, text: str) -> None:
         try:
@@ -360,7 +362,7 @@ class Session:
         while True:
             payload = await self.queue.pop()
             before = self.channel.bytes_out
-            await self.channel.send(Frame.from_payload(payload))
+            await self.channel.send_frame(payload)
             self.stats.frames_sent += 1
             self.stats.bytes_sent += self.channel.bytes_out - before
 
@@ -413,13 +415,18 @@ class LiveServer:
             self._sessions.discard(task)
 
     async def close(self) -> None:
+        """Stop accepting, end every session (each logs its figures), close the listeners; bounded in time."""
         if self._tcp is not None:
             self._tcp.close()
-        if self._rtc is not None:
-            await self._rtc.close()
         for t in list(self._sessions):
             t.cancel()
-        await asyncio.gather(*self._sessions, return_exceptions=True)
+        if self._sessions:
+            await asyncio.wait(list(self._sessions), timeout=10.0)
+        if self._rtc is not None:
+            try:
+                await asyncio.wait_for(self._rtc.close(), 10.0)
+            except asyncio.TimeoutError:
+                log.warning("WebRTC listener did not close within 10 s")
 
     async def serve_forever(self) -> None:
         if self._tcp is None and self._rtc is None:

@@ -1,0 +1,19 @@
+# quadcast: one image for the three live processes (server, link, client); see docker-compose.yml.
+FROM python:3.11-slim-bookworm
+
+# Headless GL through Mesa's EGL (llvmpipe on machines without a GPU).
+RUN apt-get update \
+    && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends libegl1 libgl1-mesa-dri libegl-mesa0 \
+    && rm -rf /var/lib/apt/lists/*
+
+WORKDIR /app
+COPY pyproject.toml README.md quadcast.py ./
+COPY render render
+COPY server server
+COPY protocol protocol
+COPY client client
+COPY sim sim
+RUN pip install --no-cache-dir .
+
+ENTRYPOINT ["quadcast"]
+CMD ["--help"]

@@ -1,0 +1,457 @@
+"""The live headless client (``quadcast client``): follows a trace in wall-clock time against a live server.
+
+:class:`LiveClient` connects (TCP, or WebRTC through :mod:`sim.webrtc`), says Hello, and from the Welcome on
+runs on its own clock ``t`` (seconds of trace since ``start``): it sends the trace pose at ``t`` at 30 Hz, and at
+60 Hz applies every frame that arrived (in order, on a :class:`sim.live_io.GLWorker` thread) and renders the
+newest state at the true pose of ``t``. Every ``record_every``-th displayed frame (after the first applied one)
+is saved as a PNG with its figures in ``recording.json``; on exit :func:`sim.evaluate.evaluate_recording` renders
+ground truth for those frames and writes the same ``summary.json`` / ``frames.csv`` / ``report.html`` as
+``quadcast eval``, with Mbps measured on the socket.
+
+Loss and resync: a residual for a reference the client lacks, a frame the H.264 decoder cannot use, or a gap
+after a reconnect make the method client need a reference; the client then sends a ReferenceRequest (again every
+``reference_timeout`` s while it still needs one) and keeps showing its last good state. If the connection
+drops, it reconnects (``retries`` attempts, ``retry_delay`` apart) and, until a self-contained frame arrives,
+ignores frames that depend on what it missed.
+"""
+from __future__ import annotations
+
+import asyncio
+import collections
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from client.video import VideoError
+from protocol.errors import ProtocolError
+from protocol.frame import FramePayload, PayloadType
+from protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
+                               ReferenceRequest, Welcome)
+from render.camera import Pose
+from sim.live_io import Channel, GLWorker, is_self_contained, open_tcp_channel
+from sim.methods import METHODS, MethodConfig
+from sim.traces import resolve_trace
+
+__all__ = ["ClientConfig", "ClientTotals", "LiveClient", "FatalServerError"]
+
+log = logging.getLogger("quadcast.client")
+
+MAX_INBOX = 32
+"""Frames received and not yet applied; past this the client drops them and asks for a reference."""
+
+FATAL_CODES = (ErrorCode.UNSUPPORTED_VERSION, ErrorCode.UNKNOWN_METHOD, ErrorCode.BAD_REQUEST,
+               ErrorCode.UNAUTHORIZED)
+
+
+class FatalServerError(RuntimeError):
+    """The server refused the session for a reason a retry cannot fix (token, method, size, version)."""
+
+
+@dataclass
+class ClientConfig:
+    """What a :class:`LiveClient` connects to, follows and records."""
+
+    host: str
+    port: int
+    trace: str = "builtin:walk"
+    out: str = "out/live"
+    scene: str = "builtin:courtyard"      # for scoring only: the server decides what it renders
+    method: str = "quasar"
+    width: int = 960
+    height: int = 540
+    fovy_deg: float = 60.0
+    duration: float | None = None         # seconds; default: the rest of the trace after `start`
+    start: float = 0.0                    # trace time to start at
+    display_hz: float = 60.0
+    pose_hz: float = 30.0
+    record_every: int = 1
+    token: str = ""
+    transport: str = "tcp"
+    retries: int = 5
+    retry_delay: float = 0.5
+    connect_timeout: float = 5.0
+    reference_timeout: float = 1.5
+    max_message_bytes: int = 64 * 1024 * 1024
+    score: bool = True
+    labels: dict = field(default_factory=dict)   # copied into the summary (e.g. the link's latency_ms)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"--method: unknown method {self.method!r}; methods are {', '.join(METHODS)}")
+        if self.transport not in ("tcp", "webrtc"):
+            raise ValueError(f"--transport: expected tcp or webrtc, got {self.transport!r}")
+        if self.record_every < 1:
+            raise ValueError(f"--record-every must be >= 1, got {self.record_every}")
+        if self.start < 0 or (self.duration is not None and not self.duration > 0):
+            raise ValueError(f"--start must be >= 0 and --duration > 0, got {self.start} and {self.duration}")
+        if self.retries < 0:
+            raise ValueError(f"--retries must be >= 0, got {self.retries}")
+
+
+@dataclass
+class ClientTotals:
+    """What happened during a run (goes into recording.json and the summary)."""
+
+    duration_s: float = 0.0
+    bytes_socket: int = 0
+    bytes_video: int = 0
+    bytes_geometry: int = 0
+    frames_received: int = 0
+    frames_applied: int = 0
+    frames_rejected: int = 0
+    frames_skipped: int = 0      # dependent frames ignored while waiting for a self-contained one
+    frames_lost: int = 0         # gaps in the server's frame ids
+    reference_requests: int = 0
+    connections: int = 0
+    reconnects: int = 0
+    display_frames: int = 0
+    recorded_frames: int = 0
+    server_types: list = field(default_factory=list)   # per applied frame: (type, bytes)
+
+
+class LiveClient:
+    """See the module docstring. ``await client.run()`` streams and records (returns the run's totals);
+    ``client.score()`` then writes the summary."""
+
+    def __init__(self, config: ClientConfig) -> None:
+        self.cfg = config
+        self.trace = resolve_trace(config.trace)
+        if config.start >= self.trace.duration:
+            raise ValueError(f"--start {config.start:g} s is past the end of trace {config.trace!r} "
+                             f"({self.trace.duration:.1f} s)")
+        remaining = self.trace.duration - config.start
+        self.duration = min(config.duration, remaining) if config.duration is not None else remaining
+        self.out = Path(config.out)
+        self.totals = ClientTotals()
+        self.worker: GLWorker | None = None
+        self.method_client = None
+        self.channel: Channel | None = None
+        self.inbox: collections.deque[FramePayload] = collections.deque()
+        self.awaiting_idr = True
+        self.last_request = -1e9
+        self._received_at_request = 0
+        self._processed = 0          # frames taken from the inbox so far
+        self.last_frame_id: int | None = None
+        self.newest: FramePayload | None = None
+        self.t0: float | None = None
+        self.finished = asyncio.Event()
+        self.records: list[dict] = []
+        self._fatal: BaseException | None = None
+
+    # ------------------------------------------------------------------ clock and poses
+
+    def now_t(self) -> float:
+        """Trace time (s since the trace start) on the client's clock."""
+        return asyncio.get_running_loop().time() - self.t0 + self.cfg.start
+
+    def pose_at(self, t: float) -> Pose:
+        p, q = self.trace.pose_at(float(self.trace.times[0]) + min(t, self.trace.duration))
+        return Pose(p, q)
+
+    # ------------------------------------------------------------------ connection
+
+    async def _open(self) -> Channel:
+        cfg = self.cfg
+        if cfg.transport == "tcp":
+            return await open_tcp_channel(cfg.host, cfg.port, cfg.max_message_bytes, cfg.connect_timeout)
+        from sim.webrtc import open_webrtc_channel
+        return await open_webrtc_channel(cfg.host, cfg.port, cfg.max_message_bytes, cfg.connect_timeout)
+
+    async def _handshake(self) -> Channel:
+        """One connection attempt: Hello -> Welcome."""
+        cfg = self.cfg
+        channel = await self._open()
+        try:
+            await channel.send(Hello(PROTOCOL_VERSION, cfg.method, cfg.width, cfg.height, cfg.fovy_deg, cfg.token))
+            msg = await asyncio.wait_for(channel.recv(), cfg.connect_timeout)
+            if isinstance(msg, ErrorMessage):
+                if msg.code in FATAL_CODES:
+                    raise FatalServerError(f"server refused the session: {msg.text} (code {msg.code})")
+                raise ConnectionError(f"server error {msg.code}: {msg.text}")
+            if not isinstance(msg, Welcome):
+                raise ConnectionError(f"expected Welcome, got {type(msg).__name__ if msg else 'end of stream'}")
+        except BaseException:
+            self.totals.bytes_socket += channel.bytes_in
+            await channel.close()
+            raise
+        self.totals.connections += 1
+        log.info("connected to %s:%d, session %d", cfg.host, cfg.port, msg.session_id)
+        print(f"client: connected to {cfg.host}:{cfg.port} ({cfg.transport}), session {msg.session_id}", flush=True)
+        return channel
+
+    async def _connect_with_retries(self) -> Channel | None:
+        cfg = self.cfg
+        for attempt in range(cfg.retries + 1):
+            if self.finished.is_set():
+                return None
+            try:
+                return await self._handshake()
+            except FatalServerError:
+                raise
+            except (OSError, ConnectionError, asyncio.TimeoutError, ProtocolError) as exc:
+                log.warning("connection attempt %d/%d to %s:%d failed: %s", attempt + 1, cfg.retries + 1,
+                            cfg.host, cfg.port, exc)
+                if attempt < cfg.retries:
+                    await asyncio.sleep(cfg.retry_delay)
+        return None
+
+    async def _connection_loop(self, first: Channel) -> None:
+        """Run each connection until it drops; reconnect while the run is not over."""
+        channel: Channel | None = first
+        while channel is not None:
+            self.channel = channel
+            self.awaiting_idr = True
+            self.last_frame_id = None
+            senders = [asyncio.create_task(self._send_poses(channel)), asyncio.create_task(self._receive(channel))]
+            stop = asyncio.create_task(self.finished.wait())
+            try:
+                await asyncio.wait(senders + [stop], return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                for t in senders + [stop]:
+                    t.cancel()
+                results = await asyncio.gather(*senders, return_exceptions=True)
+            self.channel = None
+            if self.finished.is_set():
+                try:
+                    await asyncio.wait_for(channel.send(Bye()), 1.0)
+                except Exception:  # noqa: BLE001 -- best effort
+                    pass
+                self.totals.bytes_socket += channel.bytes_in
+                await channel.close()
+                return
+            self.totals.bytes_socket += channel.bytes_in
+            await channel.close()
+            for r in results:
+                if isinstance(r, FatalServerError):
+                    self._fatal = r
+                    self.finished.set()
+                    return
+            print(f"client: connection lost at t={self.now_t():.2f} s; reconnecting", flush=True)
+            self.totals.reconnects += 1
+            try:
+                channel = await self._connect_with_retries()
+            except FatalServerError as exc:
+                self._fatal = exc
+                self.finished.set()
+                return
+            if channel is None and not self.finished.is_set():
+                print("client: could not reconnect; showing the last state until the end", flush=True)
+
+    async def _send_poses(self, channel: Channel) -> None:
+        loop = asyncio.get_running_loop()
+        period, seq = 1.0 / self.cfg.pose_hz, 0
+        next_tick = loop.time()
+        while True:
+            t = self.now_t()
+            await channel.send(PoseUpdate.from_pose(seq, t, self.pose_at(t)))
+            seq += 1
+            next_tick = max(next_tick + period, loop.time())
+            await asyncio.sleep(next_tick - loop.time())
+
+    async def _receive(self, channel: Channel) -> None:
+        while True:
+            try:
+                msg = await channel.recv()
+            except ProtocolError as exc:
+                log.warning("malformed message from the server: %s", exc)
+                return
+            if msg is None or isinstance(msg, Bye):
+                return
+            if isinstance(msg, ErrorMessage):
+                print(f"client: server error {msg.code}: {msg.text}", flush=True)
+                if msg.code in FATAL_CODES:
+                    raise FatalServerError(msg.text)
+                return
+            if not isinstance(msg, Frame):
+                log.warning("unexpected %s from the server", type(msg).__name__)
+                return
+            try:
+                payload = msg.decode(self.cfg.max_message_bytes)
+            except ProtocolError as exc:
+                self.totals.frames_rejected += 1
+                self.awaiting_idr = True
+                log.warning("bad frame: %s", exc)
+                continue
+            self.totals.frames_received += 1
+            self.totals.bytes_video += len(payload.video)
+            self.totals.bytes_geometry += len(payload.geometry)
+            if self.last_frame_id is not None and payload.frame_id > self.last_frame_id + 1:
+                self.totals.frames_lost += payload.frame_id - self.last_frame_id - 1
+            self.last_frame_id = payload.frame_id
+            self.inbox.append(payload)
+            if len(self.inbox) > MAX_INBOX:
+                self.totals.frames_skipped += len(self.inbox)
+                self.inbox.clear()
+                self.awaiting_idr = True
+
+    async def _request_reference(self, reason: str) -> None:
+        loop = asyncio.get_running_loop()
+        channel = self.channel
+        if channel is None or loop.time() - self.last_request < self.cfg.reference_timeout:
+            return
+        self.last_request = loop.time()
+        self._received_at_request = self._processed
+        try:
+            await channel.send(ReferenceRequest(reason))
+            self.totals.reference_requests += 1
+            print(f"client: reference requested at t={self.now_t():.2f} s ({reason})", flush=True)
+        except (ConnectionError, OSError):
+            pass
+
+    # ------------------------------------------------------------------ GL side
+
+    def _setup(self) -> None:
+        from sim.methods import make_client
+        cfg = self.cfg
+        self.method_client = make_client(cfg.method, MethodConfig(width=cfg.width, height=cfg.height,
+                                                                  fovy_deg=cfg.fovy_deg), self.worker.ctx)
+
+    def _apply_and_render(self, batch: list[FramePayload], pose: Pose, awaiting_idr: bool):
+        """On the GL thread: apply the frames in order, render the newest state at ``pose``."""
+        applied, rejected, skipped, reasons = [], 0, 0, []
+        for payload in batch:
+            if awaiting_idr and not is_self_contained(payload):
+                skipped += 1
+                continue
+            try:
+                self.method_client.receive(payload)
+            except (ProtocolError, VideoError) as exc:
+                rejected += 1
+                reasons.append(str(exc))
+                continue
+            awaiting_idr = False
+            applied.append(payload)
+        t0 = time.perf_counter()
+        image = self.method_client.render(pose)
+        stats = getattr(self.method_client, "stats", {}) or {}
+        ms = dict(stats.get("ms", {}))
+        ms.setdefault("render", (time.perf_counter() - t0) * 1e3)
+        return image, applied, rejected, skipped, reasons, awaiting_idr, self.method_client.needs_reference, ms
+
+    # ------------------------------------------------------------------ display
+
+    async def _display(self) -> None:
+        from PIL import Image
+        loop = asyncio.get_running_loop()
+        period = 1.0 / self.cfg.display_hz
+        frames_dir = self.out / "frames"
+        frames_dir.mkdir(parents=True, exist_ok=True)
+        next_tick = loop.time()
+        index = 0
+        first_applied = False
+        while True:
+            t = self.now_t()
+            if t - self.cfg.start >= self.duration:
+                break
+            batch = list(self.inbox)
+            self.inbox.clear()
+            self._processed += len(batch)
+            pose = self.pose_at(t)
+            (image, applied, rejected, skipped, reasons, self.awaiting_idr, needs_ref,
+             ms) = await self.worker.call(self._apply_and_render, batch, pose, self.awaiting_idr)
+            tot = self.totals
+            tot.frames_applied += len(applied)
+            tot.frames_rejected += rejected
+            tot.frames_skipped += skipped
+            for p in applied:
+                tot.server_types.append(("reference" if p.frame_type == PayloadType.REFERENCE else "residual",
+                                         len(p.video) + len(p.geometry)))
+            if applied:
+                self.newest = applied[-1]
+                if not first_applied:
+                    first_applied = True
+                    print(f"client: first frame applied at t={t:.2f} s", flush=True)
+            if reasons:
+                log.info("rejected %d frame(s): %s", rejected, "; ".join(reasons[:3]))
+            # Ask for a reference on evidence (a frame was rejected or skipped), and again while frames keep
+            # coming that the client cannot use; never merely because nothing has arrived yet.
+            if (rejected or skipped) or ((needs_ref or self.awaiting_idr)
+                                         and self._processed > self._received_at_request):
+                await self._request_reference(reasons[0] if reasons else
+                                              "waiting for a self-contained frame" if self.awaiting_idr
+                                              else "reference missing")
+            tot.display_frames += 1
+            if self.newest is not None and index % self.cfg.record_every == 0:
+                name = f"frames/display_{index:05d}.png"
+                await loop.run_in_executor(None, lambda im=image, n=name: Image.fromarray(im).save(self.out / n))
+                n = self.newest
+                render_pose = Pose(n.position, n.quat)
+                self.records.append({
+                    "index": index, "t": t, "position": pose.position.tolist(), "quat": pose.quat.tolist(),
+                    "image": name, "frame_id": int(n.frame_id), "age_ms": (t - n.t) * 1e3,
+                    "pose_error_cm": render_pose.distance_to(pose) * 100,
+                    "pose_error_deg": render_pose.angle_to_deg(pose), "client_ms": ms})
+                tot.recorded_frames += 1
+            index += 1
+            next_tick = max(next_tick + period, loop.time())
+            await asyncio.sleep(max(0.0, next_tick - loop.time()))
+
+    # ------------------------------------------------------------------ run
+
+    async def run(self) -> dict:
+        cfg = self.cfg
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.worker = GLWorker("client")
+        try:
+            await self.worker.call(self._setup)
+            first = await self._connect_with_retries()
+            if first is None:
+                raise ConnectionError(f"could not connect to {cfg.host}:{cfg.port} after {cfg.retries + 1} "
+                                      f"attempt(s)")
+            self.t0 = asyncio.get_running_loop().time()
+            conn = asyncio.create_task(self._connection_loop(first))
+            display = asyncio.create_task(self._display())
+            await asyncio.wait([conn, display], return_when=asyncio.FIRST_COMPLETED)
+            if display.done():
+                display.result()
+            elif self._fatal is not None:
+                display.cancel()
+                await asyncio.gather(display, return_exceptions=True)
+            else:
+                await display
+            self.totals.duration_s = asyncio.get_running_loop().time() - self.t0
+            self.finished.set()
+            await asyncio.wait_for(conn, 5.0)
+            if self._fatal is not None:
+                raise self._fatal
+        finally:
+            self.finished.set()
+            if self.method_client is not None:
+                try:
+                    await self.worker.call(self.method_client.close)
+                except Exception:  # noqa: BLE001
+                    log.exception("closing the method client failed")
+            await asyncio.get_running_loop().run_in_executor(None, self.worker.close)
+        self._write_recording()
+        return asdict(self.totals)
+
+    def score(self) -> dict:
+        """Ground truth for the recorded frames, FLIP/SSIM/PSNR, summary.json + frames.csv + report.html (call
+        after :meth:`run`, outside the event loop: it renders on the calling thread's GL context)."""
+        from sim.evaluate import evaluate_recording
+        return evaluate_recording(self.out)
+
+    def _write_recording(self) -> None:
+        cfg, tot = self.cfg, self.totals
+        rate = (lambda b: b * 8 / tot.duration_s / 1e6) if tot.duration_s > 0 else (lambda b: None)  # noqa: E731
+        ref = [b for k, b in tot.server_types if k == "reference"]
+        res = [b for k, b in tot.server_types if k == "residual"]
+        summary = {
+            "trace": cfg.trace, "start_s": cfg.start, "duration_s": tot.duration_s, "transport": cfg.transport,
+            "display_frames": tot.display_frames, "every": cfg.record_every,
+            "mbps": rate(tot.bytes_socket), "mbps_video": rate(tot.bytes_video),
+            "mbps_geometry": rate(tot.bytes_geometry), "server_frames": tot.frames_received,
+            "frames_applied": tot.frames_applied, "frames_lost": tot.frames_lost,
+            "frames_rejected": tot.frames_rejected, "frames_skipped": tot.frames_skipped,
+            "reference_requests": tot.reference_requests, "connections": tot.connections,
+            "reconnects": tot.reconnects, "bytes_socket": tot.bytes_socket,
+            "residual_to_reference_bytes": float(np.mean(res) / np.mean(ref)) if ref and res else None,
+            **cfg.labels,
+        }
+        rec = {"method": cfg.method, "scene": cfg.scene, "trace": cfg.trace, "size": [cfg.width, cfg.height],
+               "fovy_deg": cfg.fovy_deg, "mbps": summary["mbps"], "summary": summary, "frames": self.records}
+        (self.out / "recording.json").write_text(json.dumps(rec, indent=1))

@@ -1,0 +1,233 @@
+"""The live processes' command lines: ``quadcast server``, ``quadcast client`` and ``quadcast link``.
+
+:func:`add_live_commands` adds the three subcommands to ``quadcast``'s parser. Each long-running process prints
+one ``... listening on HOST:PORT`` line when it is ready (``--port 0`` / ``--listen 0`` pick a free port, which
+that line tells), logs to stderr, and stops cleanly on SIGINT / SIGTERM.
+"""
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import signal
+import sys
+
+__all__ = ["add_live_commands", "link_models", "parse_hostport", "format_live_summary"]
+
+
+def parse_hostport(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[v6]:PORT`` too) -> (host, port)."""
+    host, sep, port = str(text).rpartition(":")
+    if not sep or not host:
+        raise ValueError(f"expected HOST:PORT, got {text!r}")
+    host = host.strip("[]")
+    try:
+        p = int(port)
+    except ValueError:
+        raise ValueError(f"expected HOST:PORT with a numeric port, got {text!r}") from None
+    if not 1 <= p <= 65535:
+        raise ValueError(f"port must be 1..65535, got {p} in {text!r}")
+    return host, p
+
+
+def _setup_logging(verbose: bool) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+
+
+async def _run_until_signal(main, on_stop=None) -> None:
+    """Run ``main`` (a coroutine) until it ends or SIGINT/SIGTERM arrives; then cancel it."""
+    loop = asyncio.get_running_loop()
+    task = asyncio.ensure_future(main)
+    stop = asyncio.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, stop.set)
+    stopper = asyncio.create_task(stop.wait())
+    await asyncio.wait([task, stopper], return_when=asyncio.FIRST_COMPLETED)
+    stopper.cancel()
+    if not task.done():
+        task.cancel()
+    try:
+        await task
+    except asyncio.CancelledError:
+        pass
+    finally:
+        if on_stop is not None:
+            on_stop()
+
+
+# ------------------------------------------------------------------------------------------------ server
+
+def cmd_server(args) -> int:
+    from render.camera import parse_size
+    from server.app import LiveServer, ServerConfig, server_summary_line
+    _setup_logging(args.verbose)
+    max_w, max_h = parse_size(args.max_size)
+    cfg = ServerConfig(scene=args.scene, methods=tuple(m.strip() for m in args.method.split(",") if m.strip()),
+                       host=args.host, port=args.port, token=args.token or "", server_hz=args.hz,
+                       max_width=max_w, max_height=max_h, viewcell_m=args.viewcell,
+                       reference_every=args.reference_every, crf=args.crf, lead_ms=args.lead_ms,
+                       predict=not args.no_predict, max_sessions=args.max_sessions,
+                       max_message_bytes=args.max_message_bytes)
+
+    async def main() -> None:
+        server = LiveServer(cfg, transport=args.transport)
+        await server.start()
+        print(server_summary_line(server), flush=True)
+        await server.serve_forever()
+
+    asyncio.run(_run_until_signal(main()))
+    print("server: stopped", flush=True)
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ client
+
+def format_live_summary(s: dict) -> str:
+    """One line of a live run's figures."""
+    def f(v, fmt):
+        return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
+    return (f"{s.get('method')} on {s.get('trace')} ({s.get('transport', 'tcp')}, {s.get('size')}): "
+            f"{f(s.get('mbps'), '.2f')} Mbps on the socket (video {f(s.get('mbps_video'), '.2f')}, geometry "
+            f"{f(s.get('mbps_geometry'), '.2f')})  FLIP {f(s.get('flip'), '.4f')}  SSIM {f(s.get('ssim'), '.4f')}  "
+            f"PSNR {f(s.get('psnr'), '.2f')} dB  [{s.get('frames')} frames scored, {s.get('server_frames')} "
+            f"received, {s.get('frames_applied')} applied, {s.get('reference_requests')} reference requests, "
+            f"{s.get('reconnects')} reconnects]")
+
+
+def cmd_client(args) -> int:
+    from pathlib import Path
+
+    from client.app import ClientConfig, FatalServerError, LiveClient
+    from render.camera import parse_size
+    _setup_logging(args.verbose)
+    host, port = parse_hostport(args.connect)
+    w, h = parse_size(args.size)
+    labels = {k: v for k, v in (("latency_ms", args.label_latency), ("jitter_ms", args.label_jitter),
+                                ("loss", args.label_loss), ("viewcell_m", args.label_viewcell)) if v is not None}
+    cfg = ClientConfig(host=host, port=port, trace=args.trace, out=args.out, scene=args.scene, method=args.method,
+                       width=w, height=h, fovy_deg=args.fovy, duration=args.duration, start=args.start,
+                       record_every=args.record_every, token=args.token or "", transport=args.transport,
+                       retries=args.retries, score=not args.no_score, labels=labels)
+    client = LiveClient(cfg)
+    result: dict = {}
+
+    async def main() -> None:
+        result.update(await client.run())
+
+    try:
+        asyncio.run(_run_until_signal(main()))
+    except (ConnectionError, FatalServerError) as exc:
+        print(f"quadcast client: error: {exc}", file=sys.stderr)
+        return 1
+    if not result:
+        print("client: interrupted", flush=True)
+        return 130
+    if cfg.score:
+        result = client.score()
+        print(f"client: {format_live_summary(result)}", flush=True)
+        print(f"client: report: {Path(args.out) / 'report.html'}", flush=True)
+    else:
+        print(f"client: done, recording in {args.out} (not scored)", flush=True)
+    return 0
+
+
+# -------------------------------------------------------------------------------------------------- link
+
+def link_models(delay: str, jitter: str, rate: str | None, loss: str, seed: int):
+    """The (up, down) :class:`sim.link.LinkModel` pair of ``quadcast link``: the same shaping both ways, seeds
+    ``seed`` (client -> server) and ``seed + 1`` (server -> client)."""
+    from sim.proxy import parse_link_args
+    return (parse_link_args(delay, jitter, rate, loss, seed=seed),
+            parse_link_args(delay, jitter, rate, loss, seed=seed + 1))
+
+
+def cmd_link(args) -> int:
+    from server.app import check_bind
+    from sim.proxy import LinkProxy
+    _setup_logging(args.verbose)
+    to_host, to_port = parse_hostport(args.to)
+    check_bind(args.host, "x" if args.public else "")
+    up, down = link_models(args.delay, args.jitter, args.rate, args.loss, args.seed)
+    proxy = LinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down)
+
+    def report() -> None:
+        s = proxy.stats
+        print(f"link: stopped; up {s.up.messages_forwarded} forwarded / {s.up.messages_dropped} dropped, down "
+              f"{s.down.messages_forwarded} forwarded / {s.down.messages_dropped} dropped, "
+              f"{s.connections_accepted} connections", flush=True)
+
+    async def main() -> None:
+        await proxy.start()
+        print(f"link: listening on {args.host}:{proxy.port} -> {to_host}:{to_port} (delay {args.delay}, jitter "
+              f"{args.jitter}, rate {args.rate or 'unlimited'}, loss {args.loss})", flush=True)
+        await proxy.serve_forever()
+
+    asyncio.run(_run_until_signal(main(), on_stop=report))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------- parsers
+
+def add_live_commands(sub) -> None:
+    """Add ``server``, ``client`` and ``link`` to ``quadcast``'s subparsers."""
+    from sim.methods import METHODS
+
+    p = sub.add_parser("server", help="live server: stream a method to clients over TCP or WebRTC")
+    p.add_argument("--scene", default="builtin:courtyard")
+    p.add_argument("--method", default="quasar", help=f"method(s) served, comma-separated: {', '.join(METHODS)}")
+    p.add_argument("--host", default="127.0.0.1", help="bind address (non-loopback needs --token)")
+    p.add_argument("--port", type=int, required=True, help="TCP port (0: pick a free one and print it)")
+    p.add_argument("--transport", default="tcp", choices=["tcp", "webrtc"],
+                   help="webrtc: signalling over HTTP on --port, media and data over WebRTC")
+    p.add_argument("--token", help="shared secret clients must send in Hello")
+    p.add_argument("--size", dest="max_size", default="1920x1080", help="largest client size served, WxH")
+    p.add_argument("--hz", type=float, default=30.0, help="frame rate cap per session")
+    p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
+    p.add_argument("--reference-every", type=int, default=5, help="a reference frame at least every K frames")
+    p.add_argument("--crf", type=float, default=23.0)
+    p.add_argument("--lead-ms", type=float, default=40.0,
+                   help="render for the pose predicted this far beyond the measured encode time")
+    p.add_argument("--no-predict", action="store_true", help="render the last received pose as is")
+    p.add_argument("--max-sessions", type=int, default=4)
+    p.add_argument("--max-message-bytes", type=int, default=64 * 1024, help="cap on a client message")
+    p.add_argument("-v", "--verbose", action="store_true", help="log sessions to stderr")
+    p.set_defaults(func=cmd_server)
+
+    p = sub.add_parser("client", help="live headless client: follow a trace against a server, record, score")
+    p.add_argument("--connect", required=True, help="server (or link) HOST:PORT")
+    p.add_argument("--trace", default="builtin:walk")
+    p.add_argument("--scene", default="builtin:courtyard", help="scene the server renders (for ground truth)")
+    p.add_argument("--method", default="quasar", choices=list(METHODS))
+    p.add_argument("--size", default="960x540", help="WxH")
+    p.add_argument("--fovy", type=float, default=60.0)
+    p.add_argument("--duration", type=float, help="seconds (default: the rest of the trace)")
+    p.add_argument("--start", type=float, default=0.0, help="trace time to start at, seconds")
+    p.add_argument("--record-every", type=int, default=1, help="record (and score) every K-th displayed frame")
+    p.add_argument("--transport", default="tcp", choices=["tcp", "webrtc"])
+    p.add_argument("--token", help="shared secret for the server")
+    p.add_argument("--retries", type=int, default=5, help="connection attempts after a failure or a drop")
+    p.add_argument("--no-score", action="store_true", help="record only; skip the ground-truth scoring")
+    p.add_argument("--label-latency", type=float, help="link latency to note in the summary, ms")
+    p.add_argument("--label-jitter", type=float, help="link jitter to note in the summary, ms")
+    p.add_argument("--label-loss", type=float, help="link loss to note in the summary, fraction")
+    p.add_argument("--label-viewcell", type=float, help="server view-cell radius to note in the summary, m")
+    p.add_argument("--out", required=True)
+    p.add_argument("-v", "--verbose", action="store_true")
+    p.set_defaults(func=cmd_client)
+
+    p = sub.add_parser("link", help="netem-like TCP proxy between a client and a server")
+    p.add_argument("--listen", type=int, required=True, help="port to listen on (0: a free one, printed)")
+    p.add_argument("--host", default="127.0.0.1", help="listen address")
+    p.add_argument("--public", action="store_true", help="allow a non-loopback --host")
+    p.add_argument("--to", required=True, help="server HOST:PORT")
+    p.add_argument("--delay", default="20ms", help="one-way delay, e.g. 20ms")
+    p.add_argument("--jitter", default="10ms", help="uniform jitter, e.g. 10ms")
+    p.add_argument("--rate", help="rate cap per direction, e.g. 200mbit")
+    p.add_argument("--loss", default="0%", help="message loss per direction, e.g. 0.5%%")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-v", "--verbose", action="store_true")
+    p.set_defaults(func=cmd_link)
+

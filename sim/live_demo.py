@@ -1,0 +1,177 @@
+"""``quadcast demo``: the live system as three processes on loopback -- server, link (20±10 ms), client.
+
+:class:`Child` runs one ``quadcast`` subcommand as a child process, collects its stdout lines (a reader thread)
+and its stderr in a log file, and can wait for a line matching a pattern (``... listening on HOST:PORT``). The
+children die with their parent (``PR_SET_PDEATHSIG`` on Linux) and :func:`run_demo` stops them on any exit.
+The tests start their processes the same way.
+"""
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+__all__ = ["Child", "quadcast_argv", "run_demo", "LISTENING"]
+
+LISTENING = re.compile(r"listening on ([0-9.]+|localhost):(\d+)")
+"""What a ready server or link prints; group 2 is the port."""
+
+
+def quadcast_argv(*args: str) -> list[str]:
+    """The command line running ``quadcast ARGS`` with this interpreter."""
+    return [sys.executable, "-m", "quadcast", *map(str, args)]
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+class Child:
+    """A child process whose stdout lines are kept (and optionally echoed) and whose stderr goes to ``log``."""
+
+    def __init__(self, name: str, argv: list[str], log: Path | None = None, echo: bool = False,
+                 env: dict | None = None) -> None:
+        self.name, self.argv, self.echo = name, argv, echo
+        self.lines: list[str] = []
+        self._cond = threading.Condition()
+        self.log_path = log
+        self._log = open(log, "w") if log is not None else subprocess.DEVNULL
+        full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
+        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self._log, stdin=subprocess.DEVNULL,
+                                     text=True, env=full_env,
+                                     preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+        self._reader = threading.Thread(target=self._read, name=f"{name}-stdout", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            line = line.rstrip("\n")
+            with self._cond:
+                self.lines.append(line)
+                self._cond.notify_all()
+            if self.echo:
+                print(f"[{self.name}] {line}", flush=True)
+        with self._cond:
+            self._cond.notify_all()
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def stderr_tail(self, n: int = 20) -> str:
+        if self.log_path is None or not Path(self.log_path).exists():
+            return "(stderr not kept)"
+        return "\n".join(Path(self.log_path).read_text(errors="replace").splitlines()[-n:])
+
+    def wait_for(self, pattern: str | re.Pattern, timeout: float) -> re.Match:
+        """The first stdout line matching ``pattern`` (waits up to ``timeout`` s); RuntimeError if the process
+        exits first or the time runs out."""
+        rx = re.compile(pattern) if isinstance(pattern, str) else pattern
+        deadline = time.monotonic() + timeout
+        seen = 0
+        with self._cond:
+            while True:
+                for line in self.lines[seen:]:
+                    m = rx.search(line)
+                    if m:
+                        return m
+                seen = len(self.lines)
+                left = deadline - time.monotonic()
+                if self.proc.poll() is not None and not self._reader.is_alive():
+                    raise RuntimeError(f"{self.name} exited with code {self.proc.returncode} before printing "
+                                       f"{rx.pattern!r}; stderr:\n{self.stderr_tail()}")
+                if left <= 0:
+                    raise RuntimeError(f"{self.name} did not print {rx.pattern!r} within {timeout:g} s; "
+                                       f"stderr:\n{self.stderr_tail()}")
+                self._cond.wait(min(left, 0.5))
+
+    def wait(self, timeout: float) -> int:
+        """Wait for the process to exit (TimeoutExpired after ``timeout``); returns its exit code."""
+        code = self.proc.wait(timeout)
+        self._reader.join(5)
+        return code
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        """SIGTERM, then SIGKILL after ``timeout``; returns the exit code."""
+        if self.proc.poll() is None:
+            try:
+                self.proc.send_signal(signal.SIGTERM)
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        self._reader.join(5)
+        if self._log is not subprocess.DEVNULL:
+            self._log.close()
+        return self.proc.returncode
+
+    def kill(self) -> None:
+        """SIGKILL at once (a crash, as far as the peers can tell)."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+
+
+def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: float = 10.0,
+             record_every: int = 3) -> int:
+    """Start server, link and client; print the client's figures and where the report is."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    children: list[Child] = []
+
+    def on_term(signum, frame):  # stop the children through the finally below
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        t0 = time.monotonic()
+        server = Child("server", quadcast_argv("server", "--port", 0, "-v"), out / "server.log", echo=not quiet)
+        children.append(server)
+        port = int(server.wait_for(LISTENING, 120).group(2))
+        link = Child("link", quadcast_argv("link", "--listen", 0, "--to", f"127.0.0.1:{port}", "--delay", "20ms",
+                                           "--jitter", "10ms", "-v"), out / "link.log", echo=not quiet)
+        children.append(link)
+        link_port = int(link.wait_for(LISTENING, 60).group(2))
+        client_out = out / "client"
+        client = Child("client", quadcast_argv("client", "--connect", f"127.0.0.1:{link_port}", "--trace",
+                                               "builtin:walk", "--scene", "builtin:courtyard", "--size", size,
+                                               "--duration", duration, "--record-every", record_every,
+                                               "--label-latency", 20, "--label-jitter", 10, "--out", client_out),
+                       out / "client.log", echo=not quiet)
+        children.append(client)
+        code = client.wait(timeout=duration + 900)
+        if code != 0:
+            print(f"demo: the client failed (exit {code}); its stderr:\n{client.stderr_tail()}", file=sys.stderr)
+            return 1
+        s = json.loads((client_out / "summary.json").read_text())
+        print(f"demo: server, link (20±10 ms) and client ran as processes {server.pid}, {link.pid}, {client.pid} "
+              f"on 127.0.0.1 ({time.monotonic() - t0:.0f} s)")
+        print(f"demo: {s['method']} on {s['trace']} in {s['scene']} at {s['size']}, {s['duration_s']:.1f} s live: "
+              f"{s['mbps']:.2f} Mbps on the socket (video {s['mbps_video']:.2f}, geometry {s['mbps_geometry']:.2f}), "
+              f"{s['server_frames']} frames received")
+        fmt = lambda v, f: "–" if v is None else format(v, f)  # noqa: E731
+        print(f"demo: FLIP {fmt(s['flip'], '.4f')}  SSIM {fmt(s['ssim'], '.4f')}  PSNR {fmt(s['psnr'], '.2f')} dB "
+              f"over {s['frames']} scored frames")
+        print(f"demo: report -> {client_out / 'report.html'} (summary.json, frames.csv beside it; process logs in "
+              f"{out})")
+        return 0
+    except KeyboardInterrupt:
+        print("demo: interrupted; stopping the processes", file=sys.stderr)
+        return 130
+    except (RuntimeError, subprocess.TimeoutExpired) as exc:
+        print(f"demo: error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        for child in reversed(children):
+            child.stop()
+        signal.signal(signal.SIGTERM, previous)

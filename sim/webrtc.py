@@ -1,0 +1,480 @@
+"""The live protocol over WebRTC (aiortc): :class:`WebRtcChannel` has the :class:`sim.live_io.Channel` interface.
+
+What goes where, on one ``RTCPeerConnection``:
+
+- the H.264 atlas (``FramePayload.video``) as the server's **video track**, sent *as encoded* (aiortc packetizes
+  our access units; its own encoder is not used), RTP timestamp = 3000 x the frame's index on the track;
+- the rest of each frame (header, pose, quads) on the reliable ordered data channel ``frames``, as a
+  ``Frame`` message whose payload is ``u32 track index, u32 video bytes`` + the encoded payload without video;
+- poses on the unordered, no-retransmit data channel ``poses`` (a lost pose is simply superseded);
+- every other message (Hello, Welcome, ReferenceRequest, ErrorMessage, Bye) on the reliable channel ``control``.
+
+Data channels carry the same length-prefixed wire messages as TCP, split into chunks of at most
+:data:`CHUNK_BYTES` (SCTP message size limits), and are decoded by a capped
+:class:`protocol.messages.MessageDecoder` per channel.
+
+Receiving video: aiortc decodes the track itself and hands out pictures, not access units, so the receiving
+channel pairs each decoded picture (by RTP timestamp) with its ``frames`` entry and **re-encodes it as a
+standalone H.264 IDR** (x264, crf :data:`REENCODE_CRF`) before giving the ``Frame`` to the method client, whose
+decoder expects H.264. That costs a few ms per frame and a little quality; a frame whose picture does not arrive
+within :data:`PAIR_TIMEOUT_S` is dropped (the client then asks for a reference as after any loss).
+``bytes_in`` / ``bytes_out`` count data-channel bytes plus the H.264 bytes of the track (no RTP/SRTP overhead).
+
+Signalling is one HTTP request: the client POSTs its offer (JSON ``{"sdp", "type"}``) to ``/offer`` on the
+server's port and gets the answer back; :class:`WebRtcListener` is that endpoint (a tiny HTTP/1.1 server with
+header and body caps, no dependency beyond aiortc).
+"""
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import fractions
+import json
+import logging
+import struct
+import time
+from typing import Awaitable, Callable
+
+from protocol.errors import ProtocolError
+from protocol.frame import DEFAULT_MAX_FRAME_BYTES, FramePayload, decode_frame_payload, encode_frame_payload
+from protocol.messages import Frame, Message, MessageDecoder, PoseUpdate, encode_message
+from sim.live_io import Channel
+
+__all__ = ["WebRtcChannel", "WebRtcListener", "open_webrtc_channel", "CHUNK_BYTES", "REENCODE_CRF"]
+
+log = logging.getLogger("quadcast.webrtc")
+
+CHUNK_BYTES = 16 * 1024
+"""Largest data-channel message we send (SCTP implementations accept at least 64 KiB; stay well below)."""
+
+REENCODE_CRF = 18.0
+"""x264 quality of the receiver-side re-encode of decoded pictures (see the module docstring)."""
+
+PAIR_TIMEOUT_S = 2.0
+"""How long a received frame waits for its picture from the video track."""
+
+MAX_PENDING = 32
+"""Frames / pictures waiting to be paired; past this the oldest are dropped."""
+
+MAX_HTTP_HEADER = 16 * 1024
+MAX_HTTP_BODY = 256 * 1024
+VIDEO_CLOCK = 90_000
+TICKS_PER_FRAME = 3000
+_META = struct.Struct("<II")   # track index, video bytes
+ACCESS_UNIT_DELIMITER = b"\x00\x00\x00\x01\x09\xf0"
+"""Sent with the *next* frame's timestamp right after each access unit: aiortc's jitter buffer releases a frame
+only once a packet with a newer timestamp arrives, so this pushes every picture out at once (the delimiter then
+starts the next access unit, where H.264 allows it)."""
+CHANNELS = ("control", "poses", "frames")
+
+
+def _pc_classes():
+    try:
+        from aiortc import MediaStreamTrack, RTCPeerConnection, RTCSessionDescription
+    except ImportError as exc:  # pragma: no cover - aiortc is a dependency
+        raise RuntimeError(f"WebRTC transport needs aiortc: {exc}") from exc
+    return MediaStreamTrack, RTCPeerConnection, RTCSessionDescription
+
+
+def _atlas_track_class():
+    MediaStreamTrack, _, _ = _pc_classes()
+
+    class AtlasTrack(MediaStreamTrack):
+        """A video track of pre-encoded H.264 access units (``av.Packet``), one per frame."""
+
+        kind = "video"
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.queue: asyncio.Queue = asyncio.Queue(maxsize=MAX_PENDING)
+
+        async def recv(self):
+            packet = await self.queue.get()
+            if packet is None:
+                from aiortc.mediastreams import MediaStreamError
+                self.stop()
+                raise MediaStreamError("track ended")
+            return packet
+
+    return AtlasTrack
+
+
+class WebRtcChannel(Channel):
+    """The wire protocol over an open ``RTCPeerConnection`` (see the module docstring)."""
+
+    def __init__(self, pc, channels: dict, max_message_bytes: int, video_out=None, peer: str = "webrtc") -> None:
+        self.pc = pc
+        self.dc = channels
+        self.max_message_bytes = max_message_bytes
+        self.video_out = video_out            # AtlasTrack on the sending side
+        self.peer = peer
+        self.bytes_in = self.bytes_out = 0
+        self.closed = False
+        self.frames_unpaired = 0
+        self._incoming: asyncio.Queue = asyncio.Queue()
+        self._decoders = {name: MessageDecoder(max_message_bytes) for name in CHANNELS}
+        self._video_index = 0
+        self._meta: collections.OrderedDict[int, tuple[float, FramePayload, int]] = collections.OrderedDict()
+        self._pictures: collections.OrderedDict[int, object] = collections.OrderedDict()
+        self._encoder = None
+        self._video_task: asyncio.Task | None = None
+        for name, dc in channels.items():
+            dc.on("message", lambda data, name=name: self._on_message(name, data))
+            dc.on("close", lambda: self._incoming.put_nowait(None))
+
+        @pc.on("connectionstatechange")
+        def _state() -> None:
+            if pc.connectionState in ("failed", "closed"):
+                self._incoming.put_nowait(None)
+
+    # ---------------------------------------------------------------- receiving
+
+    def attach_video(self, track) -> None:
+        """Start consuming a remote video track (the client side)."""
+        self._video_task = asyncio.ensure_future(self._read_video(track))
+
+    async def _read_video(self, track) -> None:
+        try:
+            while True:
+                picture = await track.recv()
+                index = int(picture.pts or 0) // TICKS_PER_FRAME
+                self._pictures[index] = picture
+                while len(self._pictures) > MAX_PENDING:
+                    self._pictures.popitem(last=False)
+                self._pair()
+        except Exception:  # noqa: BLE001 -- MediaStreamError when the track ends
+            return
+
+    def _on_message(self, name: str, data) -> None:
+        if self.closed:
+            return
+        if isinstance(data, str):
+            data = data.encode("utf-8")
+        self.bytes_in += len(data)
+        try:
+            messages = self._decoders[name].feed(data)
+        except ProtocolError as exc:
+            self._incoming.put_nowait(exc)
+            return
+        for msg in messages:
+            if name == "frames":
+                if not isinstance(msg, Frame) or len(msg.payload) < _META.size:
+                    self._incoming.put_nowait(ProtocolError(f"frames channel: expected a Frame with a track "
+                                                            f"index, got {type(msg).__name__}"))
+                    return
+                index, video_bytes = _META.unpack_from(msg.payload)
+                try:
+                    payload = decode_frame_payload(msg.payload[_META.size:], self.max_message_bytes)
+                except ProtocolError as exc:
+                    self._incoming.put_nowait(exc)
+                    return
+                self.bytes_in += video_bytes
+                self._meta[index] = (time.monotonic(), payload, video_bytes)
+                while len(self._meta) > MAX_PENDING:
+                    self._meta.popitem(last=False)
+                    self.frames_unpaired += 1
+                self._pair()
+            else:
+                self._incoming.put_nowait(msg)
+
+    def _pair(self) -> None:
+        """Hand out, in order, every frame whose picture has arrived; drop those waiting too long."""
+        now = time.monotonic()
+        while self._meta:
+            index, (t_arrived, payload, _) = next(iter(self._meta.items()))
+            picture = self._pictures.pop(index, None)
+            if picture is None:
+                newer_picture = any(i > index for i in self._pictures)
+                if now - t_arrived > PAIR_TIMEOUT_S or (newer_picture and now - t_arrived > 0.2):
+                    self._meta.popitem(last=False)
+                    self.frames_unpaired += 1
+                    log.info("webrtc %s: frame %d's picture never came; dropped", self.peer, payload.frame_id)
+                    continue
+                return
+            self._meta.popitem(last=False)
+            payload.video = self._reencode(picture)
+            self._incoming.put_nowait(Frame.from_payload(payload))
+
+    def _reencode(self, picture) -> bytes:
+        from server.video import AtlasEncoder, VideoSettings
+        rgb = picture.to_ndarray(format="rgb24")
+        h, w = rgb.shape[:2]
+        if self._encoder is None or (self._encoder.width, self._encoder.height) != (w, h):
+            if self._encoder is not None:
+                self._encoder.close()
+            self._encoder = AtlasEncoder(w, h, VideoSettings(crf=REENCODE_CRF))
+        return self._encoder.encode(rgb, keyframe=True).data
+
+    async def recv(self) -> Message | None:
+        if self.closed and self._incoming.empty():
+            return None
+        item = await self._incoming.get()
+        if isinstance(item, Exception):
+            raise item
+        return item
+
+    # ---------------------------------------------------------------- sending
+
+    def _send_bytes(self, name: str, data: bytes) -> None:
+        if self.closed:
+            raise ConnectionError(f"channel to {self.peer} is closed")
+        dc = self.dc[name]
+        if dc.readyState != "open":
+            raise ConnectionError(f"data channel {name!r} to {self.peer} is {dc.readyState}")
+        view = memoryview(data)
+        for i in range(0, len(view), CHUNK_BYTES):
+            dc.send(bytes(view[i:i + CHUNK_BYTES]))
+        self.bytes_out += len(data)
+
+    async def _drain(self, name: str, limit: int = 4 << 20) -> None:
+        """Wait while a data channel has more than ``limit`` bytes buffered (backpressure, like drain())."""
+        dc = self.dc[name]
+        for _ in range(500):
+            if dc.bufferedAmount <= limit or dc.readyState != "open":
+                return
+            await asyncio.sleep(0.01)
+
+    async def send(self, msg: Message) -> None:
+        if isinstance(msg, Frame):
+            await self.send_frame(decode_frame_payload(msg.payload, DEFAULT_MAX_FRAME_BYTES))   # our own frame
+            return
+        name = "poses" if isinstance(msg, PoseUpdate) else "control"
+        self._send_bytes(name, encode_message(msg))
+        await self._drain(name)
+
+    async def send_frame(self, payload: FramePayload) -> None:
+        import av
+        if self.video_out is None:
+            raise RuntimeError("this WebRtcChannel has no outgoing video track (only the server sends frames)")
+        index = self._video_index
+        self._video_index += 1
+        meta = FramePayload(payload.method, payload.frame_id, payload.frame_type, payload.reference_id, payload.t,
+                            payload.position, payload.quat, b"", payload.geometry)
+        wire = _META.pack(index, len(payload.video)) + encode_frame_payload(meta)
+        self._send_bytes("frames", encode_message(Frame(wire)))
+        for data, pts in ((bytes(payload.video), index), (ACCESS_UNIT_DELIMITER, index + 1)):
+            packet = av.Packet(data)
+            packet.pts = pts * TICKS_PER_FRAME
+            packet.time_base = fractions.Fraction(1, VIDEO_CLOCK)
+            await self.video_out.queue.put(packet)
+        self.bytes_out += len(payload.video)
+        await self._drain("frames")
+
+    async def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self._incoming.put_nowait(None)
+        if self.video_out is not None:
+            with contextlib.suppress(asyncio.QueueFull):
+                self.video_out.queue.put_nowait(None)
+        if self._video_task is not None:
+            self._video_task.cancel()
+        if self._encoder is not None:
+            self._encoder.close()
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(self.pc.close(), 5.0)
+
+
+# ------------------------------------------------------------------------------------------ signalling
+
+async def _read_http(reader: asyncio.StreamReader) -> tuple[str, dict, bytes]:
+    """One HTTP/1.1 message: (start line, lower-case headers, body); ValueError on anything malformed/too big."""
+    head = b""
+    while b"\r\n\r\n" not in head:
+        chunk = await reader.read(4096)
+        if not chunk:
+            raise ValueError("connection closed inside the HTTP header")
+        head += chunk
+        if len(head) > MAX_HTTP_HEADER:
+            raise ValueError(f"HTTP header over {MAX_HTTP_HEADER} bytes")
+    head, _, body = head.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    headers = {}
+    for line in lines[1:]:
+        key, sep, value = line.partition(":")
+        if not sep:
+            raise ValueError(f"bad HTTP header line {line[:80]!r}")
+        headers[key.strip().lower()] = value.strip()
+    try:
+        length = int(headers.get("content-length", "0"))
+    except ValueError:
+        raise ValueError("bad Content-Length") from None
+    if not 0 <= length <= MAX_HTTP_BODY:
+        raise ValueError(f"HTTP body of {length} bytes (cap {MAX_HTTP_BODY})")
+    while len(body) < length:
+        chunk = await reader.read(length - len(body))
+        if not chunk:
+            raise ValueError("connection closed inside the HTTP body")
+        body += chunk
+    return lines[0], headers, body[:length]
+
+
+def _http_response(status: str, body: bytes, content_type: str = "application/json") -> bytes:
+    return (f"HTTP/1.1 {status}\r\nContent-Type: {content_type}\r\nContent-Length: {len(body)}\r\n"
+            f"Connection: close\r\n\r\n").encode() + body
+
+
+def _parse_sdp(body: bytes, expected_type: str) -> dict:
+    try:
+        desc = json.loads(body)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"signalling body is not JSON: {exc}") from None
+    if not isinstance(desc, dict) or desc.get("type") != expected_type or not isinstance(desc.get("sdp"), str):
+        raise ValueError(f"signalling body must be {{\"type\": \"{expected_type}\", \"sdp\": \"...\"}}")
+    return desc
+
+
+class WebRtcListener:
+    """The server side: an HTTP endpoint taking offers; each connection becomes a :class:`WebRtcChannel` handed to
+    ``on_channel`` (a coroutine function, run as its own task)."""
+
+    def __init__(self, host: str, port: int, on_channel: Callable[[WebRtcChannel], Awaitable[None]],
+                 max_message_bytes: int = 64 * 1024, open_timeout: float = 15.0) -> None:
+        self.host, self.requested_port = host, port
+        self.on_channel = on_channel
+        self.max_message_bytes = max_message_bytes
+        self.open_timeout = open_timeout
+        self._server: asyncio.AbstractServer | None = None
+        self._tasks: set[asyncio.Task] = set()
+        self._pcs: set = set()
+
+    @property
+    def port(self) -> int:
+        return self._server.sockets[0].getsockname()[1]
+
+    async def start(self) -> None:
+        self._server = await asyncio.start_server(self._on_http, self.host, self.requested_port)
+
+    async def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+        for t in list(self._tasks):
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        for pc in list(self._pcs):
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(pc.close(), 3.0)
+
+    async def _on_http(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        peer = writer.get_extra_info("peername")
+        try:
+            try:
+                start, _, body = await asyncio.wait_for(_read_http(reader), 10.0)
+                method, path, *_ = start.split(" ") + ["", ""]
+                if method != "POST" or path != "/offer":
+                    writer.write(_http_response("404 Not Found", b'{"error": "POST /offer only"}'))
+                    return
+                offer = _parse_sdp(body, "offer")
+                answer = await self._accept(offer, f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer))
+                writer.write(_http_response("200 OK", json.dumps(answer).encode()))
+            except (ValueError, asyncio.TimeoutError) as exc:
+                writer.write(_http_response("400 Bad Request", json.dumps({"error": str(exc)}).encode()))
+            except Exception as exc:  # noqa: BLE001 -- a bad offer must not take the server down
+                log.warning("webrtc signalling from %s failed: %s", peer, exc)
+                writer.write(_http_response("500 Internal Server Error", json.dumps({"error": str(exc)}).encode()))
+            await writer.drain()
+        except (ConnectionError, OSError):
+            pass
+        finally:
+            writer.close()
+
+    async def _accept(self, offer: dict, peer: str) -> dict:
+        _, RTCPeerConnection, RTCSessionDescription = _pc_classes()
+        pc = RTCPeerConnection()
+        self._pcs.add(pc)
+        channels: dict = {}
+        opened = asyncio.Event()
+
+        @pc.on("datachannel")
+        def _on_dc(dc) -> None:
+            if dc.label in CHANNELS:
+                channels[dc.label] = dc
+                if len(channels) == len(CHANNELS):
+                    opened.set()
+
+        track = _atlas_track_class()()
+        try:
+            await pc.setRemoteDescription(RTCSessionDescription(sdp=offer["sdp"], type="offer"))
+            pc.addTrack(track)
+            await pc.setLocalDescription(await pc.createAnswer())
+        except Exception as exc:
+            self._pcs.discard(pc)
+            await pc.close()
+            raise ValueError(f"bad offer: {exc}") from None
+
+        async def session() -> None:
+            try:
+                await asyncio.wait_for(opened.wait(), self.open_timeout)
+            except asyncio.TimeoutError:
+                log.warning("webrtc %s: data channels did not open within %g s", peer, self.open_timeout)
+                await pc.close()
+                return
+            finally:
+                pass
+            channel = WebRtcChannel(pc, channels, self.max_message_bytes, video_out=track, peer=peer)
+            try:
+                await self.on_channel(channel)
+            finally:
+                await channel.close()
+                self._pcs.discard(pc)
+
+        task = asyncio.create_task(session())
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return {"sdp": pc.localDescription.sdp, "type": pc.localDescription.type}
+
+
+async def _post_offer(host: str, port: int, offer: dict, timeout: float) -> dict:
+    reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
+    try:
+        body = json.dumps(offer).encode()
+        writer.write((f"POST /offer HTTP/1.1\r\nHost: {host}:{port}\r\nContent-Type: application/json\r\n"
+                      f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n").encode() + body)
+        await writer.drain()
+        start, _, answer = await asyncio.wait_for(_read_http(reader), timeout)
+        if " 200 " not in f"{start} ":
+            raise ConnectionError(f"signalling at {host}:{port} answered {start!r}: {answer[:200]!r}")
+        return _parse_sdp(answer, "answer")
+    finally:
+        writer.close()
+
+
+async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, timeout: float = 15.0) -> WebRtcChannel:
+    """The client side: offer (receive-only video + the three data channels), signal over HTTP, wait until the
+    data channels are open."""
+    _, RTCPeerConnection, RTCSessionDescription = _pc_classes()
+    pc = RTCPeerConnection()
+    try:
+        channels = {"control": pc.createDataChannel("control"),
+                    "poses": pc.createDataChannel("poses", ordered=False, maxRetransmits=0),
+                    "frames": pc.createDataChannel("frames")}
+        from aiortc import RTCRtpReceiver
+        video = pc.addTransceiver("video", direction="recvonly")
+        h264 = [c for c in RTCRtpReceiver.getCapabilities("video").codecs if c.mimeType.lower() == "video/h264"]
+        if not h264:
+            raise RuntimeError("this aiortc build has no H.264 codec")
+        video.setCodecPreferences(h264)   # the server sends our H.264 access units as they are
+        channel = WebRtcChannel(pc, channels, max_message_bytes, peer=f"{host}:{port}")
+
+        @pc.on("track")
+        def _on_track(track) -> None:
+            if track.kind == "video":
+                channel.attach_video(track)
+
+        await pc.setLocalDescription(await pc.createOffer())
+        answer = await _post_offer(host, port, {"sdp": pc.localDescription.sdp, "type": pc.localDescription.type},
+                                   timeout)
+        await pc.setRemoteDescription(RTCSessionDescription(sdp=answer["sdp"], type="answer"))
+        deadline = time.monotonic() + timeout
+        while any(dc.readyState != "open" for dc in channels.values()):
+            if time.monotonic() > deadline or pc.connectionState in ("failed", "closed"):
+                raise ConnectionError(f"WebRTC to {host}:{port}: data channels did not open within {timeout:g} s "
+                                      f"(connection {pc.connectionState})")
+            await asyncio.sleep(0.02)
+        return channel
+    except BaseException:
+        with contextlib.suppress(Exception):
+            await pc.close()
+        raise

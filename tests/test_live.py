@@ -1,0 +1,397 @@
+"""The live system as real processes on 127.0.0.1: `quadcast server`, `quadcast link`, `quadcast client`.
+
+Every process is a child started with sim.live_demo.Child (stdout collected, stderr in a log file, killed with the
+test process) and stopped in a finally; every wait has a timeout. Sizes are 320x180 and runs a few seconds, so
+the figures are those of a slow software-GL machine: the checks are about correctness, not speed.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+import socket
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol.messages import (PROTOCOL_VERSION, ErrorCode, ErrorMessage, Hello, MessageDecoder, PoseUpdate,
+                               encode_message)
+from server.app import FrameQueue, check_bind
+from sim.live_cli import link_models, parse_hostport
+from sim.live_demo import LISTENING, Child, quadcast_argv
+from sim.traces import Trace
+
+ROOT = Path(__file__).resolve().parents[1]
+SIZE = "320x180"
+START_TIMEOUT = 120      # a process printing its "listening" line (imports, scene, GL)
+RUN_TIMEOUT = 240        # a client run including its scoring
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """One live server for the module (several tests are its concurrent / successive clients)."""
+    logs = tmp_path_factory.mktemp("server")
+    child = Child("server", quadcast_argv("server", "--port", 0, "--max-sessions", 4, "-v"), logs / "server.log")
+    try:
+        child.port = int(child.wait_for(LISTENING, START_TIMEOUT).group(2))
+        yield child
+    finally:
+        child.stop()
+
+
+def _client(port: int, out: Path, *extra, name: str = "client") -> Child:
+    return Child(name, quadcast_argv("client", "--connect", f"127.0.0.1:{port}", "--size", SIZE, "--out", out,
+                                     *extra), out.parent / f"{out.name}.log")
+
+
+def _finish(child: Child, timeout: float = RUN_TIMEOUT) -> int:
+    try:
+        return child.wait(timeout)
+    finally:
+        child.stop()
+
+
+def _summary(out: Path) -> dict:
+    return json.loads((out / "summary.json").read_text())
+
+
+def _check_sensible(s: dict, out: Path) -> None:
+    """Figures a working run must have, whatever the machine's speed."""
+    assert s["live"] is True and s["size"] == SIZE and s["method"] == "quasar"
+    assert s["frames_applied"] >= 1 and s["server_frames"] >= s["frames_applied"]
+    assert s["frames"] >= 1, "no displayed frame was scored"
+    assert 0.0 < s["mbps"] < 1000.0
+    # Mbps is what crossed the socket: at least the frames' bytes, over the run's duration
+    assert s["bytes_socket"] * 8 / s["duration_s"] / 1e6 == pytest.approx(s["mbps"], rel=1e-4)
+    assert s["mbps"] >= s["mbps_video"] + s["mbps_geometry"] - 1e-9
+    assert 0.0 <= s["flip"] < 0.6 and 0.2 < s["ssim"] <= 1.0 and s["psnr"] > 10.0
+    rows = (out / "frames.csv").read_text().strip().splitlines()
+    assert len(rows) == s["frames"] + 1
+    assert (out / "report.html").stat().st_size > 1000
+    rec = json.loads((out / "recording.json").read_text())
+    assert all((out / f["image"]).exists() for f in rec["frames"])
+
+
+# ----------------------------------------------------------------------------------------- acceptance
+
+def test_walk_through_the_link_completes_with_sensible_figures(server, tmp_path):
+    link = Child("link", quadcast_argv("link", "--listen", 0, "--to", f"127.0.0.1:{server.port}", "--delay", "20ms",
+                                       "--jitter", "10ms"), tmp_path / "link.log")
+    try:
+        link_port = int(link.wait_for(LISTENING, START_TIMEOUT).group(2))
+        out = tmp_path / "walk"
+        client = _client(link_port, out, "--trace", "builtin:walk", "--duration", 5, "--record-every", 6,
+                         "--label-latency", 20, "--label-jitter", 10)
+        assert _finish(client) == 0, client.stderr_tail()
+    finally:
+        link.stop()
+    s = _summary(out)
+    _check_sensible(s, out)
+    assert s["trace"] == "builtin:walk" and s["latency_ms"] == 20 and s["jitter_ms"] == 10
+    assert s["duration_s"] == pytest.approx(5.0, abs=0.5)
+    assert s["reconnects"] == 0 and s["connections"] == 1 and s["frames_rejected"] == 0
+    assert any("FLIP" in line and "Mbps" in line for line in client.lines)
+    # the link forwarded the session's messages both ways and dropped none
+    stats = next(line for line in link.lines if line.startswith("link: stopped"))
+    up, down = map(int, re.search(r"up (\d+) forwarded / 0 dropped, down (\d+) forwarded / 0 dropped", stats).groups())
+    assert up >= 2 and down >= 1 + s["server_frames"]
+
+
+def test_killed_client_restarts_and_resumes(server, tmp_path):
+    first = _client(server.port, tmp_path / "first", "--trace", "builtin:walk", "--duration", 20, "--no-score")
+    try:
+        first.wait_for(r"first frame applied", START_TIMEOUT)
+        first.kill()                                   # SIGKILL mid-stream: no Bye, socket torn down
+    finally:
+        first.stop()
+    out = tmp_path / "second"
+    second = _client(server.port, out, "--trace", "builtin:walk", "--start", 3, "--duration", 3,
+                     "--record-every", 8)
+    assert _finish(second) == 0, second.stderr_tail()
+    s = _summary(out)
+    _check_sensible(s, out)
+    assert s["start_s"] == 3 and s["reconnects"] == 0
+    rec = json.loads((out / "recording.json").read_text())
+    assert min(f["t"] for f in rec["frames"]) >= 3.0      # it resumed from the trace time it was given
+    assert server.proc.poll() is None
+    log = Path(server.log_path).read_text()
+    assert re.search(r"session \d+ ended", log)
+
+
+def test_client_reconnects_when_the_link_goes_down(server, tmp_path):
+    def start_link(port: int, name: str) -> tuple[Child, int]:
+        link = Child(name, quadcast_argv("link", "--listen", port, "--to", f"127.0.0.1:{server.port}", "--delay",
+                                         "5ms", "--jitter", "0ms"), tmp_path / f"{name}.log")
+        return link, int(link.wait_for(LISTENING, START_TIMEOUT).group(2))
+
+    link, port = start_link(0, "link1")
+    out = tmp_path / "reconnect"
+    client = _client(port, out, "--trace", "builtin:walk", "--duration", 8, "--record-every", 12,
+                     "--retries", 40)
+    relink = None
+    try:
+        client.wait_for(r"first frame applied", START_TIMEOUT)
+        link.kill()                                    # the path to the server disappears mid-stream
+        client.wait_for(r"connection lost", 30)
+        relink, _ = start_link(port, "link2")          # and comes back on the same port
+        client.wait_for(r"connected to .*session", 60)
+        assert _finish(client) == 0, client.stderr_tail()
+    finally:
+        client.stop()
+        link.stop()
+        if relink is not None:
+            relink.stop()
+    s = _summary(out)
+    _check_sensible(s, out)
+    assert s["reconnects"] == 1 and s["connections"] == 2
+    connects = [line for line in client.lines if line.startswith("client: connected")]
+    assert len(connects) == 2 and connects[0] != connects[1]   # a new session on the new connection
+
+
+def _lossy_seed(loss: str, down_drop=range(2, 5)) -> int:
+    """A link seed whose server -> client direction drops one of the frames 1..3 (down messages 2..4; message 0
+    is the Welcome) and keeps the Welcome, and whose client -> server direction keeps the Hello."""
+    for seed in range(5000):
+        up, down = link_models("0ms", "0ms", None, loss, seed)
+        kept_up = up.send(0.0, "hello", 100) is not None
+        kept_down = [down.send(0.0, k, 100) is not None for k in range(6)]
+        if kept_up and kept_down[0] and kept_down[1] and not all(kept_down[i] for i in down_drop):
+            return seed
+    raise AssertionError("no seed found")
+
+
+def test_one_percent_loss_makes_the_client_resync(server, tmp_path):
+    # Standing still, every frame after a reference is a residual until the next one (every 5): a lost frame
+    # leaves the next residual without its predecessor, and the client has to ask for a reference.
+    trace = tmp_path / "still.txt"
+    times = np.arange(0.0, 12.0, 1 / 30)
+    Trace("still", times, np.tile([0.0, 1.6, 6.0], (times.size, 1)), np.zeros((times.size, 3))).save(trace)
+    seed = _lossy_seed("1%")
+    link = Child("link", quadcast_argv("link", "--listen", 0, "--to", f"127.0.0.1:{server.port}", "--delay", "5ms",
+                                       "--jitter", "0ms", "--loss", "1%", "--seed", seed), tmp_path / "link.log")
+    try:
+        link_port = int(link.wait_for(LISTENING, START_TIMEOUT).group(2))
+        out = tmp_path / "lossy"
+        client = _client(link_port, out, "--trace", trace, "--duration", 8, "--record-every", 12)
+        assert _finish(client) == 0, client.stderr_tail()
+    finally:
+        link.stop()
+    s = _summary(out)
+    _check_sensible(s, out)
+    stats = next(line for line in link.lines if line.startswith("link: stopped"))
+    assert int(re.search(r"down \d+ forwarded / (\d+) dropped", stats).group(1)) >= 1
+    assert s["frames_lost"] >= 1
+    assert s["reference_requests"] >= 1
+    assert any("reference requested" in line for line in client.lines)
+    assert re.search(r"session \d+: reference requested", Path(server.log_path).read_text())
+    # after the resync the client applied newer frames again: the newest shown frame is past the lost one
+    rec = json.loads((out / "recording.json").read_text())
+    assert max(f["frame_id"] for f in rec["frames"]) >= 4
+    assert s["reconnects"] == 0
+
+
+def _malformed(i: int) -> bytes:
+    """200 kinds of bad input, cycling through framing, type, body and order defects."""
+    hello = encode_message(Hello(PROTOCOL_VERSION, "quasar", 320, 180, 60.0))
+    pose = encode_message(PoseUpdate(1, 0.0, [0, 1.6, 6], [0, 0, 0, 1]))
+    rng = np.random.default_rng(i)
+    kinds = [
+        lambda: struct.pack("<I", 0),                                   # zero length
+        lambda: struct.pack("<I", 0x7FFFFFFF) + b"\x01" * 64,           # over the size cap
+        lambda: struct.pack("<IB", 5, 99) + b"\x00" * 4,                # unknown type
+        lambda: hello[:4] + hello[4:5] + b"\x00" * (len(hello) - 5),    # Hello with a zero size / fov
+        lambda: struct.pack("<IB", 2, 1) + b"\x00",                     # truncated Hello body
+        lambda: pose,                                                   # a pose before Hello
+        lambda: pose[:13] + struct.pack("<d", float("nan")) + pose[21:],  # NaN in a pose, before Hello
+        lambda: rng.integers(0, 256, int(rng.integers(5, 200)), dtype=np.uint8).tobytes(),  # noise
+        lambda: struct.pack("<IB", 3, 5) + b"\xff\xff",                 # ReferenceRequest with a bad string
+        lambda: struct.pack("<IB", 1, 7) + struct.pack("<IB", 1, 7),    # Bye, Bye before Hello
+    ]
+    return kinds[i % len(kinds)]()
+
+
+def _send_bad(port: int, data: bytes) -> ErrorMessage | None:
+    """Send ``data`` on a fresh connection; return the ErrorMessage the server answers with (None if it just
+    closed)."""
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(data)
+        s.shutdown(socket.SHUT_WR)
+        received = b""
+        while True:
+            try:
+                chunk = s.recv(65536)
+            except (ConnectionResetError, socket.timeout):
+                break
+            if not chunk:
+                break
+            received += chunk
+    msgs = MessageDecoder().feed(received) if received else []
+    return next((m for m in msgs if isinstance(m, ErrorMessage)), None)
+
+
+def test_malformed_messages_do_not_disturb_the_other_client(server, tmp_path):
+    out = tmp_path / "steady"
+    steady = _client(server.port, out, "--trace", "builtin:walk", "--duration", 7, "--record-every", 10)
+    try:
+        steady.wait_for(r"first frame applied", START_TIMEOUT)
+        answers = [_send_bad(server.port, _malformed(i)) for i in range(200)]
+        assert server.proc.poll() is None
+        assert steady.proc.poll() is None, "the flood should hit the server while the steady client streams"
+        code = _finish(steady)
+    finally:
+        steady.stop()
+    assert code == 0, steady.stderr_tail()
+    errors = [a for a in answers if a is not None]
+    assert len(errors) >= 150, f"only {len(errors)} of 200 bad inputs got an ErrorMessage"
+    assert {a.code for a in errors} <= {ErrorCode.PROTOCOL, ErrorCode.BAD_REQUEST}
+    assert all(a.text for a in errors)
+    s = _summary(out)
+    _check_sensible(s, out)
+    assert s["reconnects"] == 0 and s["connections"] == 1 and s["frames_rejected"] == 0
+    # and the server still takes new clients
+    again = _client(server.port, tmp_path / "again", "--trace", "builtin:static", "--duration", 2, "--no-score")
+    try:
+        again.wait_for(r"first frame applied", START_TIMEOUT)
+        assert _finish(again) == 0
+    finally:
+        again.stop()
+
+
+# ------------------------------------------------------------------------------------ fast unit checks
+
+def _payload(frame_id: int, reference: bool):
+    from protocol.frame import FramePayload, Method, PayloadType
+    return FramePayload(Method.QUASAR, frame_id, PayloadType.REFERENCE if reference else PayloadType.RESIDUAL,
+                        0, 0.0, np.zeros(3), np.array([0, 0, 0, 1.0]), b"")
+
+
+def test_frame_queue_drops_stale_frames_but_never_a_dependency():
+    async def main():
+        q = FrameQueue(max_frames=2)
+        assert q.push(_payload(0, True), self_contained=True) is False
+        assert q.push(_payload(1, False), self_contained=False) is False
+        # full: the new residual is refused (not the reference it depends on) and a reference is requested
+        assert q.push(_payload(2, False), self_contained=False) is True
+        # later residuals depend on the refused one: refused too, until a self-contained frame comes
+        assert q.push(_payload(3, False), self_contained=False) is True
+        assert [(await q.pop()).frame_id for _ in range(1)] == [0]
+        assert q.push(_payload(4, False), self_contained=False) is True
+        # a self-contained frame replaces the stale queue (newest wins) and mends the chain
+        assert q.push(_payload(5, True), self_contained=True) is False
+        assert len(q) == 1 and (await q.pop()).frame_id == 5
+        assert q.push(_payload(6, False), self_contained=False) is False
+        assert (await q.pop()).frame_id == 6
+        return q.stats
+
+    stats = asyncio.run(main())
+    assert stats.pushed == 7 and stats.dropped_new == 3 and stats.dropped_stale == 1
+
+
+def test_bind_and_address_checks():
+    check_bind("127.0.0.1", "")
+    check_bind("::1", "")
+    check_bind("localhost", "")
+    check_bind("0.0.0.0", "secret")
+    with pytest.raises(ValueError, match="--token"):
+        check_bind("0.0.0.0", "")
+    assert parse_hostport("127.0.0.1:9000") == ("127.0.0.1", 9000)
+    assert parse_hostport("[::1]:9") == ("::1", 9)
+    assert parse_hostport("link:9001") == ("link", 9001)
+    for bad in ("9000", "host:", "host:abc", "host:70000"):
+        with pytest.raises(ValueError):
+            parse_hostport(bad)
+
+
+def test_server_refuses_a_public_bind_without_token(tmp_path):
+    child = Child("server", quadcast_argv("server", "--host", "0.0.0.0", "--port", 0), tmp_path / "s.log")
+    try:
+        assert child.wait(60) == 2
+    finally:
+        child.stop()
+    assert "--token" in Path(child.log_path).read_text()
+
+
+def test_wrong_token_is_refused_and_the_client_exits(tmp_path):
+    server = Child("server", quadcast_argv("server", "--port", 0, "--token", "right"), tmp_path / "s.log")
+    try:
+        port = int(server.wait_for(LISTENING, START_TIMEOUT).group(2))
+        client = _client(port, tmp_path / "c", "--token", "wrong", "--duration", 1, "--no-score")
+        assert _finish(client, 60) == 1
+        assert "token" in Path(client.log_path).read_text()
+    finally:
+        server.stop()
+
+
+# -------------------------------------------------------------------------------- docker-compose, Dockerfile
+
+def _read_compose(text: str) -> dict:
+    """The docker-compose.yml subset used here: nested block mappings whose leaves are JSON scalars or flow
+    lists (valid YAML, so `docker compose config` reads the same thing)."""
+    root: dict = {}
+    stack = [(-1, root)]
+    for raw in text.splitlines():
+        line = raw.split(" #")[0].rstrip() if not raw.lstrip().startswith("#") else ""
+        if not line.strip():
+            continue
+        indent = len(line) - len(line.lstrip())
+        key, sep, value = line.strip().partition(":")
+        assert sep, f"not a mapping line: {raw!r}"
+        while stack[-1][0] >= indent:
+            stack.pop()
+        parent = stack[-1][1]
+        value = value.strip()
+        if not value:
+            parent[key] = {}
+            stack.append((indent, parent[key]))
+        elif value[0] in "[\"{":
+            parent[key] = json.loads(value)
+        else:
+            parent[key] = value
+    return root
+
+
+def _expand(arg: str) -> str:
+    return re.sub(r"\$\{[A-Z_]+:-([^}]*)\}", r"\1", arg)
+
+
+def test_compose_services_run_real_quadcast_commands():
+    import shutil
+    import subprocess
+
+    import quadcast
+    compose = _read_compose((ROOT / "docker-compose.yml").read_text())
+    services = compose["services"]
+    assert set(services) == {"server", "link", "client"}
+    assert services["server"]["build"] == "."
+    assert all(s["image"] == services["server"]["image"] for s in services.values())
+    parser = quadcast.build_parser()
+    parsed = {name: parser.parse_args([_expand(a) for a in s["command"]]) for name, s in services.items()}
+    assert {name: p.command for name, p in parsed.items()} == {"server": "server", "link": "link",
+                                                              "client": "client"}
+    # the wiring: client -> link -> server, by service name and port
+    assert parsed["link"].to == f"server:{parsed['server'].port}"
+    assert parsed["client"].connect == f"link:{parsed['link'].listen}"
+    assert parsed["server"].token and parsed["client"].token == parsed["server"].token
+    assert parsed["link"].delay == "20ms" and parsed["link"].jitter == "10ms"
+    assert services["client"]["depends_on"] == ["link"] and services["link"]["depends_on"] == ["server"]
+    # a public bind inside a container is only accepted with the token
+    check_bind(parsed["server"].host, parsed["server"].token)
+    if shutil.which("docker") and subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0:
+        r = subprocess.run(["docker", "compose", "-f", str(ROOT / "docker-compose.yml"), "config", "-q"],
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+
+
+def test_dockerfile_installs_the_package_and_egl():
+    text = (ROOT / "Dockerfile").read_text()
+    assert re.search(r"^FROM python:3\.11-slim-bookworm", text, re.M)
+    for pkg in ("libegl1", "libgl1-mesa-dri", "libegl-mesa0"):
+        assert pkg in text
+    import tomllib
+    packages = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    copied = set(re.findall(r"^COPY (\w+) \1$", text, re.M))
+    assert set(packages) <= copied, f"Dockerfile does not copy {set(packages) - copied}"
+    assert "quadcast.py" in text and re.search(r"pip install .*\.\s*$", text, re.M)
+    assert re.search(r'^ENTRYPOINT \["quadcast"\]', text, re.M)
