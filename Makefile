@@ -33,8 +33,12 @@ demo: setup
 test: setup
 	$(BIN)/python -m pytest
 
+# Speed and size figures (not tests): renderer, server pipeline, client stages, YORO stereo.
 bench: setup
 	$(BIN)/quadcast bench render
+	$(BIN)/quadcast bench server
+	$(BIN)/quadcast bench client
+	$(BIN)/quadcast bench stereo --sizes 960x540
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .hypothesis

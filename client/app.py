@@ -8,6 +8,19 @@ is saved as a PNG with its figures in ``recording.json``; on exit :func:`sim.eva
 ground truth for those frames and writes the same ``summary.json`` / ``frames.csv`` / ``report.html`` as
 ``quadcast eval``, with Mbps measured on the socket.
 
+``stereo=True`` (``--stereo``, quasar and quadstream only): every displayed frame is also a stereo pair made by
+:meth:`client.quasar.QuasarClient.stereo_frame` -- the left eye drawn from the quad mesh, the right eye
+synthesized with YORO (mode ``"yoro"``). Recorded frames keep both eyes (``frames/left_*.png``,
+``frames/right_*.png``), the right eye's pose and the frame's cost ratio (the right eye also rendered from the
+mesh, as ``quadcast eval --stereo`` does), and the summary gets ``stereo`` = {ssim, psnr, flip, cost_ratio} of the
+synthesized right eye against the ground-truth right eye, scored by :func:`sim.evaluate.evaluate_recording` with
+the same code as ``quadcast eval --stereo``. The head-pose image is still recorded and scored for the main figures.
+
+The GL work runs on a :class:`sim.live_io.GLWorker` *thread*: moderngl holds the GIL during GL calls, so the
+client's event loop (pose sending, frame receiving) can stall while a frame renders. The client's pose I/O matters
+less than the server's (which uses a worker process per session); poses are stamped with the client's clock when
+sent, so a late pose is late, not wrong.
+
 Loss and resync: a residual for a reference the client lacks, a frame the H.264 decoder cannot use, or a gap
 after a reconnect make the method client need a reference; the client then sends a ReferenceRequest (again every
 ``reference_timeout`` s while it still needs one) and keeps showing its last good state. If the connection
@@ -36,12 +49,15 @@ from sim.live_io import Channel, GLWorker, is_self_contained, open_tcp_channel
 from sim.methods import METHODS, MethodConfig
 from sim.traces import resolve_trace
 
-__all__ = ["ClientConfig", "ClientTotals", "LiveClient", "FatalServerError"]
+__all__ = ["ClientConfig", "ClientTotals", "LiveClient", "FatalServerError", "STEREO_METHODS"]
 
 log = logging.getLogger("quadcast.client")
 
 MAX_INBOX = 32
 """Frames received and not yet applied; past this the client drops them and asks for a reference."""
+
+STEREO_METHODS = ("quasar", "quadstream")
+"""Methods whose client keeps the depth of what it shows (a quad mesh), so it can synthesize the second eye."""
 
 FATAL_CODES = (ErrorCode.UNSUPPORTED_VERSION, ErrorCode.UNKNOWN_METHOD, ErrorCode.BAD_REQUEST,
                ErrorCode.UNAUTHORIZED)
@@ -74,9 +90,11 @@ class ClientConfig:
     retries: int = 5
     retry_delay: float = 0.5
     connect_timeout: float = 5.0
+    welcome_timeout: float = 30.0         # Hello -> Welcome: the server may have to boot a worker process
     reference_timeout: float = 1.5
     max_message_bytes: int = 64 * 1024 * 1024
     score: bool = True
+    stereo: bool = False                  # also make and record a YORO stereo pair (quasar, quadstream)
     labels: dict = field(default_factory=dict)   # copied into the summary (e.g. the link's latency_ms)
 
     def __post_init__(self) -> None:
@@ -90,6 +108,9 @@ class ClientConfig:
             raise ValueError(f"--start must be >= 0 and --duration > 0, got {self.start} and {self.duration}")
         if self.retries < 0:
             raise ValueError(f"--retries must be >= 0, got {self.retries}")
+        if self.stereo and self.method not in STEREO_METHODS:
+            raise ValueError(f"--stereo: the {self.method} client keeps no depth to synthesize an eye from; stereo "
+                             f"works with the {' and '.join(STEREO_METHODS)} methods")
 
 
 @dataclass
@@ -167,7 +188,7 @@ class LiveClient:
         channel = await self._open()
         try:
             await channel.send(Hello(PROTOCOL_VERSION, cfg.method, cfg.width, cfg.height, cfg.fovy_deg, cfg.token))
-            msg = await asyncio.wait_for(channel.recv(), cfg.connect_timeout)
+            msg = await asyncio.wait_for(channel.recv(), cfg.welcome_timeout)
             if isinstance(msg, ErrorMessage):
                 if msg.code in FATAL_CODES:
                     raise FatalServerError(f"server refused the session: {msg.text} (code {msg.code})")
@@ -309,9 +330,12 @@ class LiveClient:
         cfg = self.cfg
         self.method_client = make_client(cfg.method, MethodConfig(width=cfg.width, height=cfg.height,
                                                                   fovy_deg=cfg.fovy_deg), self.worker.ctx)
+        if cfg.stereo and not hasattr(self.method_client, "stereo_frame"):
+            raise ValueError(f"--stereo: the {cfg.method} client cannot synthesize an eye")
 
-    def _apply_and_render(self, batch: list[FramePayload], pose: Pose, awaiting_idr: bool):
-        """On the GL thread: apply the frames in order, render the newest state at ``pose``."""
+    def _apply_and_render(self, batch: list[FramePayload], pose: Pose, awaiting_idr: bool, record: bool = False):
+        """On the GL thread: apply the frames in order, render the newest state at ``pose`` (and, with stereo,
+        both eyes; ``record``: also the right eye rendered, for the cost ratio)."""
         applied, rejected, skipped, reasons = [], 0, 0, []
         for payload in batch:
             if awaiting_idr and not is_self_contained(payload):
@@ -330,7 +354,14 @@ class LiveClient:
         stats = getattr(self.method_client, "stats", {}) or {}
         ms = dict(stats.get("ms", {}))
         ms.setdefault("render", (time.perf_counter() - t0) * 1e3)
-        return image, applied, rejected, skipped, reasons, awaiting_idr, self.method_client.needs_reference, ms
+        stereo = None
+        if self.cfg.stereo:
+            frame = self.method_client.stereo_frame(pose, mode="yoro", with_rendered=record)
+            stereo = {"left": frame.left, "right": frame.right, "position": frame.other_camera.pose.position.tolist(),
+                      "quat": frame.other_camera.pose.quat.tolist(), "cost_ratio": frame.cost_ratio}
+            ms.update({f"stereo_{k}": v for k, v in frame.ms.items()})
+        return (image, applied, rejected, skipped, reasons, awaiting_idr, self.method_client.needs_reference, ms,
+                stereo)
 
     # ------------------------------------------------------------------ display
 
@@ -351,8 +382,9 @@ class LiveClient:
             self.inbox.clear()
             self._processed += len(batch)
             pose = self.pose_at(t)
+            record = index % self.cfg.record_every == 0
             (image, applied, rejected, skipped, reasons, self.awaiting_idr, needs_ref,
-             ms) = await self.worker.call(self._apply_and_render, batch, pose, self.awaiting_idr)
+             ms, stereo) = await self.worker.call(self._apply_and_render, batch, pose, self.awaiting_idr, record)
             tot = self.totals
             tot.frames_applied += len(applied)
             tot.frames_rejected += rejected
@@ -375,16 +407,28 @@ class LiveClient:
                                               "waiting for a self-contained frame" if self.awaiting_idr
                                               else "reference missing")
             tot.display_frames += 1
-            if self.newest is not None and index % self.cfg.record_every == 0:
+            if self.newest is not None and record:
                 name = f"frames/display_{index:05d}.png"
-                await loop.run_in_executor(None, lambda im=image, n=name: Image.fromarray(im).save(self.out / n))
+                images = {name: image}
                 n = self.newest
                 render_pose = Pose(n.position, n.quat)
-                self.records.append({
+                entry = {
                     "index": index, "t": t, "position": pose.position.tolist(), "quat": pose.quat.tolist(),
                     "image": name, "frame_id": int(n.frame_id), "age_ms": (t - n.t) * 1e3,
                     "pose_error_cm": render_pose.distance_to(pose) * 100,
-                    "pose_error_deg": render_pose.angle_to_deg(pose), "client_ms": ms})
+                    "pose_error_deg": render_pose.angle_to_deg(pose), "client_ms": ms}
+                if stereo is not None:
+                    left, right = f"frames/left_{index:05d}.png", f"frames/right_{index:05d}.png"
+                    images.update({left: stereo["left"], right: stereo["right"]})
+                    entry["stereo"] = {"left": left, "right": right, "synthesized": "right",
+                                       "position": stereo["position"], "quat": stereo["quat"],
+                                       "cost_ratio": stereo["cost_ratio"]}
+
+                def save(images=images) -> None:
+                    for n_, im in images.items():
+                        Image.fromarray(im).save(self.out / n_)
+                await loop.run_in_executor(None, save)
+                self.records.append(entry)
                 tot.recorded_frames += 1
             index += 1
             next_tick = max(next_tick + period, loop.time())
@@ -453,5 +497,6 @@ class LiveClient:
             **cfg.labels,
         }
         rec = {"method": cfg.method, "scene": cfg.scene, "trace": cfg.trace, "size": [cfg.width, cfg.height],
-               "fovy_deg": cfg.fovy_deg, "mbps": summary["mbps"], "summary": summary, "frames": self.records}
+               "fovy_deg": cfg.fovy_deg, "mbps": summary["mbps"], "stereo": cfg.stereo, "summary": summary,
+               "frames": self.records}
         (self.out / "recording.json").write_text(json.dumps(rec, indent=1))

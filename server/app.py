@@ -1,12 +1,18 @@
 """The live quadcast server (``quadcast server``): an asyncio process streaming one method to several clients.
 
 Per connection (:class:`Session`): the client's :class:`protocol.messages.Hello` is checked (version, method,
-size, token) before anything is allocated; then a :class:`sim.live_io.GLWorker` thread with its own GL context
-renders and encodes, so the event loop only moves messages. Poses go into a :class:`PosePredictor`; a 30 Hz
-ticker starts one encode at a time (when the worker is idle) for the pose predicted at the frame's display time;
-encoded frames wait in a bounded :class:`FrameQueue` until the socket takes them.
+size, token) before anything is allocated; then the session's :class:`SessionPipeline` (renderer + the method's
+server, with their own GL context) runs in a worker *process* of its own (:class:`sim.live_io.ProcessWorker`,
+``spawn``), so the event loop only moves messages: it sends (pose, time, reference?) down a pipe and gets the
+encoded payload bytes back. (moderngl holds the GIL during GL calls, so a worker *thread* -- ``worker="thread"``,
+kept for comparison, see :mod:`sim.live_stall` -- stalls the loop while it renders.) Poses go into a
+:class:`PosePredictor` on the loop; a 30 Hz ticker starts one encode at a time (when the worker is idle) for the
+pose predicted at the frame's display time; encoded frames wait in a bounded :class:`FrameQueue` until the socket
+takes them.
 
-Robustness: a malformed message or any failure ends only its session, after an :class:`ErrorMessage`; incoming
+Robustness: a malformed message or any failure ends only its session, after an :class:`ErrorMessage` (a worker
+process that dies -- killed, crashed -- ends its session with ``ErrorCode.INTERNAL`` naming it); worker processes
+are terminated when their session ends and when the server closes, and die with the server; incoming
 messages are capped at ``max_message_bytes``; at most ``max_sessions`` sessions run at once; a connection that
 sends no Hello within ``handshake_timeout`` is closed. The server binds 127.0.0.1 unless told otherwise, and
 refuses any other bind without a shared-secret token.
@@ -19,19 +25,23 @@ import hmac
 import ipaddress
 import itertools
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from protocol.errors import ProtocolError
-from protocol.frame import FramePayload
+from protocol.frame import FramePayload, decode_frame_payload, encode_frame_payload
 from protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Hello, PoseUpdate,
                                ReferenceRequest, Welcome)
 from render.camera import Pose
 from server.prediction import PosePredictor
-from sim.live_io import Channel, GLWorker, TcpChannel, is_self_contained
+from sim.live_io import (Channel, GLWorker, ProcessWorker, TcpChannel, WorkerDied, WorkerError,
+                         is_self_contained)
 from sim.methods import METHODS, MethodConfig
 
-__all__ = ["ServerConfig", "FrameQueue", "Session", "LiveServer", "check_bind"]
+__all__ = ["ServerConfig", "FrameQueue", "PipelineSpec", "SessionPipeline", "Session", "LiveServer", "check_bind"]
 
 log = logging.getLogger("quadcast.server")
 
@@ -61,14 +71,21 @@ class ServerConfig:
     queue_frames: int = 3               # per-session send queue
     handshake_timeout: float = 10.0
     idle_timeout: float = 30.0          # a session that sends nothing for this long is closed
+    worker: str = "process"             # where a session renders and encodes: "process" or "thread"
+    worker_start_timeout: float = 60.0  # a session's worker must be ready (GL context, scene, server) by then
+    spare_workers: int = 2              # worker processes kept booted for the next sessions (worker="process")
 
     def __post_init__(self) -> None:
+        if self.worker not in ("process", "thread"):
+            raise ValueError(f"--worker: expected process or thread, got {self.worker!r}")
         unknown = [m for m in self.methods if m not in METHODS]
         if not self.methods or unknown:
             raise ValueError(f"--method: unknown method(s) {', '.join(unknown) or '(none)'}; "
                              f"methods are {', '.join(METHODS)}")
         if not (0 < self.server_hz <= 240):
             raise ValueError(f"--hz: expected 0 < hz <= 240, got {self.server_hz}")
+        if not 0 <= self.spare_workers <= 8:
+            raise ValueError(f"--spare-workers: expected 0..8, got {self.spare_workers}")
         if self.max_sessions < 1 or self.queue_frames < 1:
             raise ValueError("--max-sessions and the queue length must be >= 1")
         check_bind(self.host, self.token)
@@ -150,6 +167,160 @@ class FrameQueue:
         return self._frames.popleft()
 
 
+# -------------------------------------------------------------------------------------------- pipeline
+
+@dataclass(frozen=True)
+class PipelineSpec:
+    """What a session's worker builds (picklable: it crosses to the worker process)."""
+
+    scene: str
+    method: str
+    width: int
+    height: int
+    fovy_deg: float
+    viewcell_m: float
+    reference_every: int
+    crf: float
+
+
+class SessionPipeline:
+    """A session's renderer and method server: what its worker (process or thread) runs.
+
+    Built inside the worker: in a worker process (``ctx=None``) on the process's own headless GL context, with the
+    scene loaded there; in a :class:`GLWorker` thread on that thread's context. :meth:`encode` renders and encodes
+    one frame and returns it as wire bytes (:func:`protocol.frame.encode_frame_payload`), whether it is
+    self-contained, and the server's figures for it.
+    """
+
+    def __init__(self, spec: PipelineSpec, ctx=None, scene=None) -> None:
+        from render.renderer import DeferredRenderer
+        from render.scene import load_scene
+        from sim.methods import make_server
+        self.spec = spec
+        self.renderer = DeferredRenderer(scene if scene is not None else load_scene(spec.scene), ctx)
+        config = MethodConfig(width=spec.width, height=spec.height, fovy_deg=spec.fovy_deg,
+                              viewcell_radius=spec.viewcell_m, reference_every=spec.reference_every, crf=spec.crf)
+        self.server = make_server(spec.method, self.renderer, config)
+
+    def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool, dict]:
+        if reference:
+            self.server.request_reference()
+        t0 = time.perf_counter()
+        payload = self.server.encode(Pose(np.asarray(position, np.float64), np.asarray(quat, np.float64)), t)
+        stats = {"encode_ms": (time.perf_counter() - t0) * 1e3, "pid": os.getpid()}
+        return encode_frame_payload(payload), is_self_contained(payload), stats
+
+    def close(self) -> None:
+        self.server.close()
+
+
+class SessionHost:
+    """The handler of a session's worker process: warmed up before any session claims it (modules imported,
+    headless GL context made, scene loaded: a few seconds on llvmpipe), then :meth:`build` makes the claiming
+    session's :class:`SessionPipeline` (fast), and :meth:`encode` runs it. The server keeps one such process
+    spare, so a new session waits for its pipeline, not for a process to boot."""
+
+    def __init__(self, scene: str) -> None:
+        from render.gl import gl_context
+        from render.scene import load_scene
+        gl_context()
+        self.scene = load_scene(scene)
+        self.pipeline: SessionPipeline | None = None
+
+    def build(self, spec: PipelineSpec) -> int:
+        if self.pipeline is not None:
+            raise RuntimeError("SessionHost.build: this worker already serves a session")
+        self.pipeline = SessionPipeline(spec, scene=self.scene)
+        return os.getpid()
+
+    def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool, dict]:
+        if self.pipeline is None:
+            raise RuntimeError("SessionHost.encode: no pipeline built")
+        return self.pipeline.encode(position, quat, t, reference)
+
+    def close(self) -> None:
+        if self.pipeline is not None:
+            self.pipeline.close()
+            self.pipeline = None
+
+
+class _ThreadWorker:
+    """A session pipeline on a :class:`GLWorker` thread in the server's process (``worker="thread"``)."""
+
+    kind = "thread"
+
+    def __init__(self, name: str, spec: PipelineSpec, scene) -> None:
+        self.name, self.spec, self.scene = name, spec, scene
+        self.gl: GLWorker | None = None
+        self.pipeline: SessionPipeline | None = None
+        self.pid = os.getpid()
+        self.died = asyncio.Event()       # never set: a thread cannot be killed on its own
+
+    async def start(self, timeout: float) -> int:
+        self.gl = GLWorker(self.name)
+        self.pipeline = await asyncio.wait_for(self.gl.call(SessionPipeline, self.spec, self.gl.ctx, self.scene),
+                                               timeout)
+        return self.pid
+
+    async def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool, dict]:
+        return await self.gl.call(self.pipeline.encode, position, quat, t, reference)
+
+    @property
+    def death(self) -> str | None:
+        return None
+
+    async def close(self) -> None:
+        if self.gl is None:
+            return
+        gl, self.gl = self.gl, None
+        if self.pipeline is not None:
+            try:
+                await gl.call(self.pipeline.close)
+            except Exception:  # noqa: BLE001
+                log.exception("%s: closing the method server failed", self.name)
+        await asyncio.get_running_loop().run_in_executor(None, gl.close)
+
+
+class _ProcessWorker:
+    """A session pipeline in a worker process of its own (``worker="process"``, the default)."""
+
+    kind = "process"
+
+    def __init__(self, name: str, spec: PipelineSpec, proc: ProcessWorker) -> None:
+        self.name, self.spec, self.proc = name, spec, proc
+        self.pid: int | None = None
+        self.died = asyncio.Event()
+
+    async def start(self, timeout: float) -> int:
+        """Wait for the (spare) process to be warm, then build this session's pipeline in it."""
+        try:
+            await self.proc.start(timeout)
+        finally:
+            if self.proc.died is not None:
+                self.died = self.proc.died
+        self.pid = await asyncio.wait_for(self.proc.call("build", self.spec), timeout)
+        return self.pid
+
+    async def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool, dict]:
+        return await self.proc.call("encode", np.asarray(position), np.asarray(quat), float(t), bool(reference))
+
+    @property
+    def death(self) -> str | None:
+        return self.proc.death if self.proc is not None else None
+
+    def kill_now(self) -> None:
+        """For server shutdown: stop the process at once (its session's close reaps it)."""
+        if self.proc is not None and self.proc.process.is_alive():
+            self.proc.process.kill()
+
+    async def close(self) -> None:
+        """Ask the process to close its method server and exit; terminate it if it does not (bounded)."""
+        if self.proc is None or getattr(self, "_closing", False):
+            return
+        self._closing = True
+        await asyncio.get_running_loop().run_in_executor(None, self.proc.close)
+
+
 # --------------------------------------------------------------------------------------------- session
 
 class SessionError(Exception):
@@ -181,8 +352,7 @@ class Session:
         self.predictor = PosePredictor(smooth=False)
         self.queue = FrameQueue(self.cfg.queue_frames)
         self.stats = SessionStats()
-        self.worker: GLWorker | None = None
-        self.method_server = None
+        self.worker: _ThreadWorker | _ProcessWorker | None = None
         self.want_reference = False
         self.last_pose: PoseUpdate | None = None
         self.last_pose_local = 0.0
@@ -207,15 +377,22 @@ class Session:
             raise SessionError(ErrorCode.BAD_REQUEST, f"Hello size {w}x{h}: expected even sizes from 16x16 to "
                                                       f"{cfg.max_width}x{cfg.max_height}")
 
-    def _setup(self, hello: Hello) -> None:
-        """On the GL thread: the renderer and the method's server for this client."""
-        from render.renderer import DeferredRenderer
-        from sim.methods import make_server
-        renderer = DeferredRenderer(self.server.scene, self.worker.ctx)
-        config = MethodConfig(width=hello.width, height=hello.height, fovy_deg=hello.fovy_deg,
-                              viewcell_radius=self.cfg.viewcell_m, reference_every=self.cfg.reference_every,
-                              crf=self.cfg.crf)
-        self.method_server = make_server(hello.method, renderer, config)
+    async def _start_worker(self, hello: Hello) -> None:
+        """The session's worker (a process unless ``config.worker == "thread"``) with its pipeline built."""
+        cfg = self.cfg
+        spec = PipelineSpec(cfg.scene, hello.method, hello.width, hello.height, hello.fovy_deg, cfg.viewcell_m,
+                            cfg.reference_every, cfg.crf)
+        name = f"session-{self.id}"
+        self.worker = (_ProcessWorker(name, spec, self.server.claim_process()) if cfg.worker == "process"
+                       else _ThreadWorker(name, spec, self.server.scene))
+        self.server.workers.add(self.worker)
+        try:
+            await self.worker.start(cfg.worker_start_timeout)
+        except WorkerError as exc:
+            raise SessionError(ErrorCode.INTERNAL, f"session worker could not start: {exc}") from None
+        except (WorkerDied, asyncio.TimeoutError) as exc:
+            raise SessionError(ErrorCode.INTERNAL, f"session worker could not start: "
+                                                   f"{exc or 'timed out'}") from None
 
     async def run(self) -> None:
         """The whole session; never raises (errors end it with an ErrorMessage)."""
@@ -234,13 +411,15 @@ class Session:
                 raise SessionError(ErrorCode.BAD_REQUEST, f"server full ({self.cfg.max_sessions} sessions)")
             self.server.active += 1
             try:
-                self.worker = GLWorker(f"session-{self.id}")
-                await self.worker.call(self._setup, msg)
+                await self._start_worker(msg)
                 await self.channel.send(Welcome(self.id, self.cfg.server_hz))
-                log.info("session %d (%s): %s %dx%d", self.id, self.channel.peer, msg.method, msg.width, msg.height)
+                log.info("session %d (%s): %s %dx%d, worker %s pid %d (event loop pid %d)", self.id,
+                         self.channel.peer, msg.method, msg.width, msg.height, self.worker.kind, self.worker.pid,
+                         os.getpid())
                 tasks = [asyncio.create_task(self._reader(), name=f"s{self.id}-reader"),
                          asyncio.create_task(self._ticker(), name=f"s{self.id}-ticker"),
-                         asyncio.create_task(self._sender(), name=f"s{self.id}-sender")]
+                         asyncio.create_task(self._sender(), name=f"s{self.id}-sender"),
+                         asyncio.create_task(self._watch_worker(), name=f"s{self.id}-watch")]
                 done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
                 for t in done:
                     if not t.cancelled() and t.exception() is not None:
@@ -281,12 +460,10 @@ class Session:
         if self.worker is None:
             return
         worker, self.worker = self.worker, None
-        if self.method_server is not None:
-            try:
-                await worker.call(self.method_server.close)
-            except Exception:  # noqa: BLE001
-                log.exception("session %d: closing the method server failed", self.id)
-        await asyncio.get_running_loop().run_in_executor(None, worker.close)
+        try:
+            await worker.close()
+        finally:
+            self.server.workers.discard(worker)
 
     # -- tasks
 
@@ -328,11 +505,20 @@ class Session:
             p, q = self.last_pose.position, self.last_pose.quat
         return Pose(p, q), show_at
 
-    def _encode(self, pose: Pose, t: float, reference: bool) -> FramePayload:
-        """On the GL thread."""
-        if reference:
-            self.method_server.request_reference()
-        return self.method_server.encode(pose, t)
+    async def _watch_worker(self) -> None:
+        """End the session as soon as its worker process dies, even while no encode is under way."""
+        await self.worker.died.wait()
+        raise SessionError(ErrorCode.INTERNAL, f"session worker died: {self.worker.death}")
+
+    async def _encode(self, pose: Pose, t: float, reference: bool) -> tuple[FramePayload, bool]:
+        """One frame from the worker, parsed back (cheap: header and slices) for the queue and the transport."""
+        try:
+            data, self_contained, _ = await self.worker.encode(pose.position, pose.quat, t, reference)
+        except WorkerDied as exc:
+            raise SessionError(ErrorCode.INTERNAL, f"session worker died: {exc}") from None
+        except WorkerError as exc:
+            raise SessionError(ErrorCode.INTERNAL, f"render/encode failed: {exc}") from None
+        return decode_frame_payload(data, max_bytes=max(len(data), 1)), self_contained
 
     async def _ticker(self) -> None:
         loop = asyncio.get_running_loop()
@@ -348,14 +534,14 @@ class Session:
             self._busy = True
             t0 = time.perf_counter()
             try:
-                payload = await self.worker.call(self._encode, pose, show_at, reference)
+                payload, self_contained = await self._encode(pose, show_at, reference)
             finally:
                 self._busy = False
             dt = time.perf_counter() - t0
             self.encode_ema_s = 0.8 * self.encode_ema_s + 0.2 * dt
             self.stats.frames_encoded += 1
             self.stats.encode_ms.append(dt * 1e3)
-            if self.queue.push(payload):
+            if self.queue.push(payload, self_contained):
                 self.want_reference = True    # a frame was refused: the next one must stand alone
 
     async def _sender(self) -> None:
@@ -379,10 +565,34 @@ class LiveServer:
         self.config, self.transport = config, transport
         self.scene = load_scene(config.scene)
         self.active = 0
+        self.workers: set = set()          # the sessions' live workers (killed at close if still there)
         self._ids = itertools.count(1)
         self._sessions: set[asyncio.Task] = set()
         self._tcp: asyncio.AbstractServer | None = None
         self._rtc = None
+        self._spares: collections.deque[ProcessWorker] = collections.deque()
+        self._closing = False
+
+    def _spawn_spares(self) -> None:
+        """Boot worker processes until ``spare_workers`` are spare (a session claims one instead of waiting for a
+        process to boot: seconds on a loaded machine)."""
+        if self.config.worker != "process" or self._closing:
+            return
+        while len(self._spares) < self.config.spare_workers:
+            self._spares.append(ProcessWorker(SessionHost, (self.config.scene,), "session-worker"))
+
+    def claim_process(self) -> ProcessWorker:
+        """A worker process for a new session: the oldest (warmest) spare, or a new one; spares are refilled."""
+        proc = None
+        while self._spares and proc is None:
+            proc = self._spares.popleft()
+            if not proc.alive:
+                proc.close(timeout=0.0)
+                proc = None
+        if proc is None:
+            proc = ProcessWorker(SessionHost, (self.config.scene,), "session-worker")
+        self._spawn_spares()
+        return proc
 
     @property
     def port(self) -> int:
@@ -394,6 +604,13 @@ class LiveServer:
 
     async def start(self) -> None:
         cfg = self.config
+        self._spawn_spares()
+        if self._spares:                 # the first session should not wait for a process to boot
+            try:
+                await self._spares[0].start(cfg.worker_start_timeout)
+            except (WorkerDied, WorkerError, asyncio.TimeoutError) as exc:
+                await self._close_spares()
+                raise RuntimeError(f"server: the session worker process could not start: {exc}") from None
         if self.transport == "tcp":
             self._tcp = await asyncio.start_server(self._on_tcp, cfg.host, cfg.port, limit=1 << 16)
         else:
@@ -401,6 +618,12 @@ class LiveServer:
             self._rtc = WebRtcListener(cfg.host, cfg.port, self.serve_channel,
                                        max_message_bytes=cfg.max_message_bytes)
             await self._rtc.start()
+
+    async def _close_spares(self) -> None:
+        self._closing = True
+        spares, self._spares = list(self._spares), collections.deque()
+        for spare in spares:
+            await asyncio.get_running_loop().run_in_executor(None, lambda s=spare: s.close(timeout=1.0))
 
     async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         await self.serve_channel(TcpChannel(reader, writer, self.config.max_message_bytes))
@@ -411,6 +634,8 @@ class LiveServer:
         self._sessions.add(task)
         try:
             await Session(self, channel, next(self._ids)).run()
+        except asyncio.CancelledError:
+            pass            # server shutdown: the session cleaned up in its finally; end this task normally
         finally:
             self._sessions.discard(task)
 
@@ -418,10 +643,15 @@ class LiveServer:
         """Stop accepting, end every session (each logs its figures), close the listeners; bounded in time."""
         if self._tcp is not None:
             self._tcp.close()
+        await self._close_spares()
         for t in list(self._sessions):
             t.cancel()
         if self._sessions:
             await asyncio.wait(list(self._sessions), timeout=10.0)
+        for worker in list(self.workers):     # sessions that did not end in time: no process outlives us
+            if isinstance(worker, _ProcessWorker):
+                log.warning("%s: killing its worker process %s at shutdown", worker.name, worker.pid)
+                worker.kill_now()
         if self._rtc is not None:
             try:
                 await asyncio.wait_for(self._rtc.close(), 10.0)

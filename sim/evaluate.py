@@ -182,10 +182,25 @@ def _stereo_scorer(renderer: DeferredRenderer, spec: EvalSpec, client):
         if client.last_frame_id < 0:
             return None
         frame = client.stereo_frame(camera.pose, mode="yoro", with_rendered=True)
-        truth = renderer.render(camera.with_pose(frame.other_camera.pose), t).color
-        s = compare(truth, frame.synthesized)
-        return {"ssim": s.ssim, "psnr": s.psnr, "flip": s.flip, "cost_ratio": frame.cost_ratio}
+        return score_stereo_eye(renderer, camera, t, frame.other_camera.pose, frame.synthesized, frame.cost_ratio)
     return score
+
+
+def score_stereo_eye(renderer: DeferredRenderer, camera: Camera, t: float, eye_pose: Pose, synthesized: np.ndarray,
+                     cost_ratio: float | None) -> dict:
+    """One synthesized eye against ground truth (the deferred renderer at `camera` moved to `eye_pose`, time `t`):
+    `ssim`, `psnr`, `flip`, and the frame's `cost_ratio` as given. Shared by `quadcast eval --stereo`
+    (`_stereo_scorer`) and live recordings (`evaluate_recording`)."""
+    truth = renderer.render(camera.with_pose(eye_pose), t).color
+    s = compare(truth, synthesized)
+    return {"ssim": s.ssim, "psnr": s.psnr, "flip": s.flip, "cost_ratio": cost_ratio}
+
+
+def stereo_summary(rows: list[dict]) -> dict | None:
+    """The summary's `stereo` entry: the mean of each of `score_stereo_eye`'s figures (None without rows)."""
+    if not rows:
+        return None
+    return {k: float(np.mean([r[k] for r in rows])) for k in ("ssim", "psnr", "flip", "cost_ratio")}
 
 
 # ----------------------------------------------------------------------------------------------- sweep
@@ -229,9 +244,12 @@ def evaluate_recording(directory: str | Path) -> dict:
     recording.json holds ``method``, ``scene``, ``trace``, ``size`` [w, h], ``fovy_deg``, ``frames`` (per recorded
     display frame: ``index``, ``t`` scene time, true ``position``/``quat``, ``image`` path relative to the
     directory, ``frame_id`` of the newest applied server frame or -1, and optional ``age_ms``,
-    ``pose_error_cm``/``pose_error_deg``, ``client_ms``) and an optional ``summary`` of run-wide figures (Mbps on
-    the socket, frame counts, ...), which is merged into the summary. Writes summary.json (the fields of
-    ``quadcast eval`` plus ``live``), frames.csv and report.html to the directory and returns the summary.
+    ``pose_error_cm``/``pose_error_deg``, ``client_ms``, and with stereo a ``stereo`` entry: ``right`` image path
+    of the synthesized eye, that eye's ``position``/``quat`` and the frame's ``cost_ratio``) and an optional
+    ``summary`` of run-wide figures (Mbps on the socket, frame counts, ...), which is merged into the summary.
+    Writes summary.json (the fields of ``quadcast eval`` plus ``live``, and ``stereo`` as ``quadcast eval
+    --stereo`` has it when the frames have stereo entries), frames.csv and report.html to the directory and
+    returns the summary.
     """
     from PIL import Image
 
@@ -241,17 +259,29 @@ def evaluate_recording(directory: str | Path) -> dict:
     renderer = DeferredRenderer(load_scene(rec["scene"]))
     scorer = _Scorer(renderer, w, h, rec.get("fovy_deg", 60.0))
     client_ms = []
+    stereo_rows = []
+
+    def load(name: str) -> np.ndarray:
+        image = np.asarray(Image.open(directory / name).convert("RGB"))
+        if image.shape[:2] != (h, w):
+            raise ValueError(f"{name}: image is {image.shape[1]}x{image.shape[0]}, recording says {w}x{h}")
+        return image
     for f in rec["frames"]:
         if f.get("frame_id", 0) < 0:
             continue   # shown before the first payload arrived: black for every method, not scored
-        image = np.asarray(Image.open(directory / f["image"]).convert("RGB"))
-        if image.shape[:2] != (h, w):
-            raise ValueError(f"{f['image']}: image is {image.shape[1]}x{image.shape[0]}, recording says {w}x{h}")
+        image = load(f["image"])
         pose = Pose(f["position"], f["quat"])
         extra = {k: f[k] for k in ("frame_id", "age_ms", "pose_error_cm", "pose_error_deg", "bytes_video",
                                    "bytes_geometry") if k in f}
         scorer.score(f["index"], f["t"], pose, image, extra)
         client_ms.append(f.get("client_ms", {}))
+        eye = f.get("stereo")
+        if eye is not None:
+            if eye.get("cost_ratio") is None:
+                raise ValueError(f"frame {f['index']}: stereo entry has no cost_ratio")
+            camera = Camera.perspective(pose, w, h, rec.get("fovy_deg", 60.0))
+            stereo_rows.append(score_stereo_eye(renderer, camera, f["t"], Pose(eye["position"], eye["quat"]),
+                                                load(eye["right"]), float(eye["cost_ratio"])))
     scored = scorer.records
     run = dict(rec.get("summary", {}))
     summary = {
@@ -269,6 +299,8 @@ def evaluate_recording(directory: str | Path) -> dict:
         "pose_error_deg": _stats(r.get("pose_error_deg") for r in scored),
         "client_ms": _mean_stages(client_ms), "live": True,
     }
+    if stereo_rows:
+        summary["stereo"] = stereo_summary(stereo_rows)
     summary.update(run)
     write_outputs(directory, summary, scored, [f for _, f in scorer.worst])
     return summary

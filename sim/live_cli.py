@@ -70,7 +70,8 @@ def cmd_server(args) -> int:
                        max_width=max_w, max_height=max_h, viewcell_m=args.viewcell,
                        reference_every=args.reference_every, crf=args.crf, lead_ms=args.lead_ms,
                        predict=not args.no_predict, max_sessions=args.max_sessions,
-                       max_message_bytes=args.max_message_bytes)
+                       max_message_bytes=args.max_message_bytes, worker=args.worker,
+                       spare_workers=args.spare_workers)
 
     async def main() -> None:
         server = LiveServer(cfg, transport=args.transport)
@@ -78,7 +79,11 @@ def cmd_server(args) -> int:
         print(server_summary_line(server), flush=True)
         await server.serve_forever()
 
-    asyncio.run(_run_until_signal(main()))
+    try:
+        asyncio.run(_run_until_signal(main()))
+    except RuntimeError as exc:
+        print(f"quadcast server: error: {exc}", file=sys.stderr)
+        return 1
     print("server: stopped", flush=True)
     return 0
 
@@ -94,7 +99,10 @@ def format_live_summary(s: dict) -> str:
             f"{f(s.get('mbps_geometry'), '.2f')})  FLIP {f(s.get('flip'), '.4f')}  SSIM {f(s.get('ssim'), '.4f')}  "
             f"PSNR {f(s.get('psnr'), '.2f')} dB  [{s.get('frames')} frames scored, {s.get('server_frames')} "
             f"received, {s.get('frames_applied')} applied, {s.get('reference_requests')} reference requests, "
-            f"{s.get('reconnects')} reconnects]")
+            f"{s.get('reconnects')} reconnects]" + (
+                f"  stereo (synthesized right eye): FLIP {f(st.get('flip'), '.4f')}  SSIM {f(st.get('ssim'), '.4f')}  "
+                f"PSNR {f(st.get('psnr'), '.2f')} dB  cost ratio {f(st.get('cost_ratio'), '.2f')}"
+                if isinstance(st := s.get("stereo"), dict) else ""))
 
 
 def cmd_client(args) -> int:
@@ -110,7 +118,7 @@ def cmd_client(args) -> int:
     cfg = ClientConfig(host=host, port=port, trace=args.trace, out=args.out, scene=args.scene, method=args.method,
                        width=w, height=h, fovy_deg=args.fovy, duration=args.duration, start=args.start,
                        record_every=args.record_every, token=args.token or "", transport=args.transport,
-                       retries=args.retries, score=not args.no_score, labels=labels)
+                       retries=args.retries, score=not args.no_score, stereo=args.stereo, labels=labels)
     client = LiveClient(cfg)
     result: dict = {}
 
@@ -193,6 +201,11 @@ def add_live_commands(sub) -> None:
     p.add_argument("--no-predict", action="store_true", help="render the last received pose as is")
     p.add_argument("--max-sessions", type=int, default=4)
     p.add_argument("--max-message-bytes", type=int, default=64 * 1024, help="cap on a client message")
+    p.add_argument("--worker", default="process", choices=["process", "thread"],
+                   help="where each session renders and encodes: its own process (default), or a thread of the "
+                        "server's process (stalls the event loop while it renders)")
+    p.add_argument("--spare-workers", type=int, default=2,
+                   help="worker processes kept booted for the next sessions (--worker process)")
     p.add_argument("-v", "--verbose", action="store_true", help="log sessions to stderr")
     p.set_defaults(func=cmd_server)
 
@@ -210,6 +223,9 @@ def add_live_commands(sub) -> None:
     p.add_argument("--token", help="shared secret for the server")
     p.add_argument("--retries", type=int, default=5, help="connection attempts after a failure or a drop")
     p.add_argument("--no-score", action="store_true", help="record only; skip the ground-truth scoring")
+    p.add_argument("--stereo", action="store_true",
+                   help="also show and record both eyes (the right one synthesized with YORO from the quad mesh) and "
+                        "score the synthesized eye as `quadcast eval --stereo` does (quasar, quadstream)")
     p.add_argument("--label-latency", type=float, help="link latency to note in the summary, ms")
     p.add_argument("--label-jitter", type=float, help="link jitter to note in the summary, ms")
     p.add_argument("--label-loss", type=float, help="link loss to note in the summary, fraction")

@@ -259,6 +259,109 @@ def test_malformed_messages_do_not_disturb_the_other_client(server, tmp_path):
         again.stop()
 
 
+def test_stereo_client_records_both_eyes_and_scores_the_synthesized_one(server, tmp_path):
+    out = tmp_path / "stereo"
+    client = _client(server.port, out, "--trace", "builtin:walk", "--duration", 3, "--record-every", 5, "--stereo")
+    assert _finish(client) == 0, client.stderr_tail()
+    s = _summary(out)
+    _check_sensible(s, out)
+    st = s["stereo"]
+    assert set(st) == {"ssim", "psnr", "flip", "cost_ratio"}
+    assert 0.0 <= st["flip"] < 0.6 and 0.2 < st["ssim"] <= 1.0 and st["psnr"] > 10.0
+    assert 0.0 < st["cost_ratio"] < 20.0
+    rec = json.loads((out / "recording.json").read_text())
+    assert rec["stereo"] is True and len(rec["frames"]) == s["frames"] >= 1
+    from PIL import Image
+    for f in rec["frames"]:
+        eye = f["stereo"]
+        left = np.asarray(Image.open(out / eye["left"]))
+        right = np.asarray(Image.open(out / eye["right"]))
+        assert left.shape == right.shape == (180, 320, 3)
+        assert not np.array_equal(left, right)         # two viewpoints, not one image twice
+        # the synthesized eye sits half the IPD (63 mm) to the right of the head
+        assert np.linalg.norm(np.subtract(eye["position"], f["position"])) == pytest.approx(0.0315, abs=1e-4)
+    assert any("stereo (synthesized right eye)" in line for line in client.lines)
+
+
+def test_stereo_with_a_baseline_method_fails_at_start_up(tmp_path):
+    log = tmp_path / "c.log"
+    child = Child("client", quadcast_argv("client", "--connect", "127.0.0.1:9", "--method", "atw", "--stereo",
+                                          "--size", SIZE, "--out", tmp_path / "x"), log)
+    try:
+        assert child.wait(60) not in (0, None)
+    finally:
+        child.stop()
+    text = log.read_text()
+    assert "--stereo" in text and "atw" in text and "Traceback" not in text
+    assert not (tmp_path / "x").exists()
+
+
+def _session_workers(log: str) -> dict[int, tuple[int, int]]:
+    """session id -> (worker pid, event loop pid), from the server's "session N (...): ... worker" log lines."""
+    return {int(sid): (int(wpid), int(lpid)) for sid, wpid, lpid in
+            re.findall(r"session (\d+) \([^)]*\): \w+ \d+x\d+, worker process pid (\d+) \(event loop pid (\d+)\)",
+                       log)}
+
+
+def _parent_pid(pid: int) -> int:
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    return int(stat.rsplit(")", 1)[1].split()[1])
+
+
+def _gone(pid: int, timeout: float) -> bool:
+    """Whether process ``pid`` is gone and reaped (no zombie left) within ``timeout`` s."""
+    import time
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if not Path(f"/proc/{pid}").exists():      # a zombie keeps its /proc entry until it is reaped
+            return True
+        time.sleep(0.2)
+    return False
+
+
+def test_each_session_encodes_in_its_own_process_and_killing_it_ends_only_that_session(server, tmp_path):
+    import os
+    import signal
+    # The victim streams first; the steady client's session then waits for a worker process to boot (a few
+    # seconds, longer while others stream), so the victim runs long enough to overlap it; it is stopped after the kill.
+    victim = _client(server.port, tmp_path / "victim", "--trace", "builtin:walk", "--duration", 25, "--no-score")
+    steady_out = tmp_path / "steady"
+    steady = None
+    try:
+        sid = int(victim.wait_for(r"connected to .*session (\d+)", START_TIMEOUT).group(1))
+        victim.wait_for(r"first frame applied", START_TIMEOUT)
+        steady = _client(server.port, steady_out, "--trace", "builtin:walk", "--duration", 4, "--record-every", 8)
+        steady_sid = int(steady.wait_for(r"connected to .*session (\d+)", START_TIMEOUT).group(1))
+        steady.wait_for(r"first frame applied", START_TIMEOUT)
+        workers = _session_workers(Path(server.log_path).read_text())
+        (pid, loop_pid), (steady_pid, _) = workers[sid], workers[steady_sid]
+        # the encoders run in processes of their own, children of the server, not in its event loop's process
+        assert loop_pid == server.pid
+        assert len({pid, steady_pid, server.pid}) == 3
+        assert _parent_pid(pid) == server.pid and _parent_pid(steady_pid) == server.pid
+        assert victim.proc.poll() is None
+        os.kill(pid, signal.SIGKILL)
+        victim.wait_for(r"server error 6: .*worker", 30)
+        victim.wait_for(r"connection lost", 30)        # ... and the client goes on to reconnect
+        victim.stop()
+        assert steady.proc.poll() is None
+        steady_code = _finish(steady)
+    finally:
+        if steady is not None:
+            steady.stop()
+        victim.stop()
+    assert steady_code == 0, steady.stderr_tail()
+    log = Path(server.log_path).read_text()
+    assert re.search(rf"session {sid} \([^)]*\): session worker died: .*process {pid} was killed by signal 9", log)
+    assert _gone(pid, 15), "the killed worker was not reaped"
+    s = _summary(steady_out)
+    _check_sensible(s, steady_out)
+    assert s["reconnects"] == 0 and s["frames_rejected"] == 0
+    assert server.proc.poll() is None
+    # the sessions' workers end with them
+    assert _gone(steady_pid, 15)
+
+
 # ------------------------------------------------------------------------------------ fast unit checks
 
 def _payload(frame_id: int, reference: bool):
@@ -314,7 +417,7 @@ def test_server_refuses_a_public_bind_without_token(tmp_path):
 
 
 def test_wrong_token_is_refused_and_the_client_exits(tmp_path):
-    server = Child("server", quadcast_argv("server", "--port", 0, "--token", "right"), tmp_path / "s.log")
+    server = Child("server", quadcast_argv("server", "--port", 0, "--token", "right", "--spare-workers", 0), tmp_path / "s.log")
     try:
         port = int(server.wait_for(LISTENING, START_TIMEOUT).group(2))
         client = _client(port, tmp_path / "c", "--token", "wrong", "--duration", 1, "--no-score")

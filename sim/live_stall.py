@@ -1,0 +1,102 @@
+"""How long the live server's event loop stalls while a session renders: worker thread vs worker process.
+
+Not a test (it measures wall-clock time). For each ``--worker`` kind it runs a :class:`server.app.LiveServer` in
+this process with a 10 ms asyncio ticker on the same event loop, connects one ``quadcast client`` (a separate
+process) at ``--size`` for ``--duration`` seconds, and reports the ticker's largest gap (and its 99th percentile)
+while the session ran: the longest time the loop could not read a pose or send a frame.
+
+    .venv/bin/python -m sim.live_stall --size 1920x1080 --duration 8
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import re
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+TICK_S = 0.010
+
+
+class _Frames(logging.Handler):
+    """Picks the encoded-frame count out of the server's "session N ended" log line."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.frames = 0
+        self.encode_ms = float("nan")
+
+    def emit(self, record: logging.LogRecord) -> None:
+        m = re.search(r"(\d+) frames encoded \(mean (\d+) ms", record.getMessage())
+        if m:
+            self.frames, self.encode_ms = int(m.group(1)), float(m.group(2))
+
+
+async def measure(worker: str, size: str, duration: float, scene: str, trace: str) -> dict:
+    """Run one session against an in-process server with ``worker``; the ticker's gaps while it ran."""
+    from server.app import LiveServer, ServerConfig
+    from sim.live_demo import Child, quadcast_argv
+
+    frames = _Frames()
+    logging.getLogger("quadcast.server").addHandler(frames)
+    logging.getLogger("quadcast.server").setLevel(logging.INFO)
+    server = LiveServer(ServerConfig(scene=scene, port=0, worker=worker))
+    await server.start()
+    loop = asyncio.get_running_loop()
+    gaps: list[float] = []
+    stop = asyncio.Event()
+
+    async def ticker() -> None:
+        last = loop.time()
+        while not stop.is_set():
+            await asyncio.sleep(TICK_S)
+            now = loop.time()
+            if server.active > 0:
+                gaps.append(now - last)
+            last = now
+
+    tick = asyncio.create_task(ticker())
+    with tempfile.TemporaryDirectory() as tmp:
+        client = Child("client", quadcast_argv("client", "--connect", f"127.0.0.1:{server.port}", "--size", size,
+                                               "--scene", scene, "--trace", trace, "--duration", duration,
+                                               "--no-score", "--out", Path(tmp) / "out"), Path(tmp) / "client.log")
+        try:
+            code = await loop.run_in_executor(None, client.wait, duration + 300)
+        finally:
+            client.stop()
+    for _ in range(300):                     # let the session end (it logs its frame count) before closing
+        if server.active == 0 and frames.frames:
+            break
+        await asyncio.sleep(0.1)
+    stop.set()
+    await tick
+    await server.close()
+    logging.getLogger("quadcast.server").removeHandler(frames)
+    g = np.asarray(gaps) * 1e3
+    return {"worker": worker, "client_exit": code, "ticks": int(g.size),
+            "max_gap_ms": float(g.max()) if g.size else float("nan"),
+            "p99_gap_ms": float(np.percentile(g, 99)) if g.size else float("nan"),
+            "frames_encoded": frames.frames, "encode_ms": frames.encode_ms}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--size", default="1920x1080")
+    ap.add_argument("--duration", type=float, default=8.0)
+    ap.add_argument("--scene", default="builtin:courtyard")
+    ap.add_argument("--trace", default="builtin:walk")
+    ap.add_argument("--workers", default="thread,process")
+    args = ap.parse_args(argv)
+    for worker in args.workers.split(","):
+        r = asyncio.run(measure(worker, args.size, args.duration, args.scene, args.trace))
+        print(f"{r['worker']:>7}: event-loop max gap {r['max_gap_ms']:.0f} ms, p99 {r['p99_gap_ms']:.0f} ms "
+              f"({TICK_S * 1e3:g} ms ticker, {r['ticks']} ticks during the session; {r['frames_encoded']} frames "
+              f"encoded at {args.size}, mean {r['encode_ms']:.0f} ms; client exit {r['client_exit']})", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
