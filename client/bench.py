@@ -27,21 +27,11 @@ from render.scene import Scene, SceneError, load_scene
 CLIENT_STAGES = ("zstd", "video", "quad_update", "mesh", "render")
 
 
-def walk_poses(scene: Scene, frames: int, fps: float = 30.0) -> list[tuple[float, Pose]]:
-    """(t, pose) of a short walk: builtin:walk in the courtyard; elsewhere a 1 m/s circle of radius 3 m around
-    the scene's centre at eye height above its floor, looking at the centre."""
-    if scene.name != "monastery":
-        from sim.traces import resolve_trace
-        trace = resolve_trace("builtin:walk")
-        return [(k / fps, Pose(*trace.pose_at(k / fps))) for k in range(frames)]
-    lo, hi = scene.bounds()
-    c = (lo + hi) / 2
-    out = []
-    for k in range(frames):
-        a = (k / fps) / 3.0   # 1 m/s along a 3 m radius
-        eye = np.array([c[0] + 3 * np.cos(a), lo[1] + 1.7, c[2] + 3 * np.sin(a)])
-        out.append((k / fps, Pose.look_at(eye, [c[0], lo[1] + 1.5, c[2]])))
-    return out
+def walk_poses(spec: str, scene: Scene, frames: int, fps: float = 30.0) -> list[tuple[float, Pose]]:
+    """(t, pose) of the scene's benchmark trace (:func:`server.bench.trace_for`) at `fps`, from its start."""
+    from server.bench import trace_for
+    trace = trace_for(spec, scene)
+    return [(k / fps, Pose(*trace.pose_at(trace.times[0] + k / fps))) for k in range(frames)]
 
 
 def _scenes(specs: list[str]) -> list[tuple[str, Scene]]:
@@ -73,7 +63,7 @@ def bench_client(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
             server = QuasarServer(renderer, QuasarSettings(width=w, height=h, video=VideoSettings(crf=crf)))
             client = QuasarClient(w, h, ctx=renderer.ctx)
             per_frame, kinds = [], []
-            for t, pose in tqdm(walk_poses(scene, frames), desc=f"client {spec} {w}x{h}", unit="frame",
+            for t, pose in tqdm(walk_poses(spec, scene, frames), desc=f"client {spec} {w}x{h}", unit="frame",
                                 disable=quiet, leave=False):
                 payload = server.encode(pose, t)
                 client.receive(payload)
@@ -115,7 +105,7 @@ def bench_stereo(scenes: list[str], size: tuple[int, int] = (960, 540), frames: 
         server = QuasarServer(renderer, QuasarSettings(width=w, height=h, video=VideoSettings(crf=crf)))
         client = QuasarClient(w, h, ctx=renderer.ctx)
         acc: dict[str, list[dict]] = {"yoro": [], "rerender": []}
-        poses = walk_poses(scene, frames)
+        poses = walk_poses(spec, scene, frames)
         for k, (t, pose) in enumerate(tqdm(poses, desc=f"stereo {spec} {w}x{h}", unit="frame", disable=quiet,
                                            leave=False)):
             client.receive(server.encode(pose, t))

@@ -139,6 +139,7 @@ class DeferredRenderer:
         self.shadow_map.repeat_x = self.shadow_map.repeat_y = False
         self.shadow_fbo = ctx.framebuffer(depth_attachment=self.shadow_map)
         self._shadow_time: float | None = None
+        self._animated_casters = any(o.cast_shadow and o.animation is not None for o in scene.objects)
         self._gbuffers: dict[tuple[int, int], GBuffer] = {}
 
     # ----------------------------------------------------------------------------------------- passes
@@ -155,8 +156,10 @@ class DeferredRenderer:
                           [0, 0, -2 / (far - near), -(far + near) / (far - near)], [0, 0, 0, 1]])
         return ortho @ view
 
-    def _render_shadows(self, t: float) -> None:
-        if self._shadow_time == t:
+    def render_shadows(self, t: float) -> None:
+        """The sun's shadow map at time t (skipped when it is already current)."""
+        # The shadow map depends on t only through animated shadow casters: a static scene renders it once.
+        if self._shadow_time == t or (self._shadow_time is not None and not self._animated_casters):
             return
         light_vp = self.light_view_projection()
         self.shadow_fbo.use()
@@ -205,7 +208,7 @@ class DeferredRenderer:
 
     def lighting_pass(self, gb: GBuffer, t: float) -> None:
         camera = gb.camera
-        self._render_shadows(t)
+        self.render_shadows(t)
         scene, view = self.scene, camera.view_matrix()
         prog = self.lighting_prog
         gb.color_fbo.use()

@@ -91,3 +91,27 @@ def test_disocclusion_after_half_metre_step(courtyard_renderer):
     seen_depth = a.depth[px[inside, 1], px[inside, 0]]
     hidden = depth_in_a > seen_depth + 0.3
     assert hidden.mean() > 0.005
+
+
+def _shadowed_pair(animated: bool) -> dict:
+    """A floor and a box above it casting a shadow; the box slides along x when `animated`."""
+    box = {"primitive": "box", "size": [1, 1, 1], "position": [0, 1.5, -4], "color": [0.8, 0.2, 0.2]}
+    if animated:
+        box["animation"] = {"type": "translate", "direction": [1, 0, 0], "amplitude": 2.0, "period_s": 4.0}
+    return {"models": [{"primitive": "plane", "size": [20, 20], "position": [0, 0, -4], "color": [0.7, 0.7, 0.7]},
+                       box],
+            "sun": {"direction": [0.2, -1, 0.1], "shadow_extent": 10, "center": [0, 0, -4]}}
+
+
+@pytest.mark.parametrize("animated", [False, True])
+def test_shadow_map_follows_animated_casters_only(ctx, animated):
+    """The shadow map is drawn once for a scene without animated casters; a frame at t = 1 after one at t = 0 must
+    equal a fresh renderer's frame at t = 1 either way (and, when the caster moves, differ from t = 0)."""
+    scene = scene_from_dict(_shadowed_pair(animated))
+    cam = Camera.perspective(Pose.look_at([0, 4, 2], [0, 0, -4]), 160, 90)
+    reused = DeferredRenderer(scene, ctx)
+    first = reused.render_color(cam, 0.0)
+    later = reused.render_color(cam, 1.0)
+    fresh = DeferredRenderer(scene_from_dict(_shadowed_pair(animated)), ctx).render_color(cam, 1.0)
+    assert np.array_equal(later, fresh)
+    assert np.array_equal(first, later) != animated
