@@ -208,7 +208,7 @@ def bench_render(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
     for spec in scenes:
         try:
             scene = load_scene(spec)
-            trace = trace_for(spec)
+            trace = trace_for(spec, scene)
         except SceneError as exc:
             print(f"skip {spec}: {exc}")
             continue
@@ -221,11 +221,11 @@ def bench_render(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
             t0 = time.perf_counter()
             for k, cam in enumerate(cams[1:]):
                 # The passes of render_color, each waited for, so their times add up to the frame's.
-                t = k / 30
+                t, gb = k / 30, renderer.gbuffer_for(w, h)
                 for stage, run in (("shadow", lambda: renderer.render_shadows(t)),
-                                   ("geometry", lambda: renderer.geometry_pass(cam, t)),
-                                   ("lighting", lambda: renderer.lighting_pass(renderer.gbuffer_for(w, h), t)),
-                                   ("readback", lambda: renderer.gbuffer_for(w, h).read_color())):
+                                   ("geometry", lambda: renderer.geometry_pass(cam, t, gb)),
+                                   ("lighting", lambda: renderer.lighting_pass(gb, t)),
+                                   ("readback", gb.read_color)):
                     ts = time.perf_counter()
                     run()
                     renderer.finish()

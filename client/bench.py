@@ -113,7 +113,7 @@ def bench_stereo(scenes: list[str], size: tuple[int, int] = (960, 540), frames: 
                 f = client.stereo_frame(pose, mode, with_rendered=True)
                 if k == 0:
                     continue  # warm-up
-                truth = renderer.render(Camera.perspective(f.other_camera.pose, w, h), t).color
+                truth = renderer.render_color(Camera.perspective(f.other_camera.pose, w, h), t)
                 gt, own = compare(truth, f.synthesized), compare(f.rendered_other, f.synthesized)
                 records.append({"ssim": gt.ssim, "psnr": gt.psnr, "flip": gt.flip, "ssim_mesh": own.ssim,
                                 "psnr_mesh": own.psnr, "flip_mesh": own.flip,

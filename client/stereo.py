@@ -65,14 +65,19 @@ class StereoResult:
         """(H, W, 3) uint8, top row first."""
         return read_texture(self.color, 4, "u1")[..., :3]
 
+    def read_masks(self) -> tuple[np.ndarray, np.ndarray]:
+        """Both masks from one read-back: (:meth:`read_disocclusion`, :meth:`read_rerender_mask`)."""
+        m = read_texture(self.mask, 2, "u1")
+        disoccluded = m[..., 0] > 127
+        return disoccluded, disoccluded | (m[..., 1] > 127)
+
     def read_disocclusion(self) -> np.ndarray:
         """(H, W) bool: pixels the dominant eye did not see (filled by the Patcher)."""
-        return read_texture(self.mask, 2, "u1")[..., 0] > 127
+        return self.read_masks()[0]
 
     def read_rerender_mask(self) -> np.ndarray:
         """(H, W) bool: pixels mode 2 re-renders (disocclusions and conservative edge rejects)."""
-        m = read_texture(self.mask, 2, "u1")
-        return (m[..., 0] > 127) | (m[..., 1] > 127)
+        return self.read_masks()[1]
 
 
 class StereoSynthesizer:
@@ -121,6 +126,7 @@ class StereoSynthesizer:
         self.color = ctx.texture((w, h), 4, dtype="f1")
         self.mask = ctx.texture((w, h), 2, dtype="f1")
         self.merged = ctx.texture((w, h), 4, dtype="f1")        # mode 2 composite
+        self._cull_fbos: dict[int, moderngl.Framebuffer] = {}   # per depth texture drawn into (mode 2)
         for tex in (self.targets, self.imbuffer, self.color, self.mask, self.merged):
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self._last: StereoResult | None = None
@@ -224,7 +230,9 @@ class StereoSynthesizer:
                              f"synthesizer is {self.width}x{self.height}")
         ctx = self.ctx
         previous = ctx.fbo
-        fbo = ctx.framebuffer(depth_attachment=depth_texture)
+        fbo = self._cull_fbos.get(depth_texture.glo)
+        if fbo is None:
+            fbo = self._cull_fbos[depth_texture.glo] = ctx.framebuffer(depth_attachment=depth_texture)
         try:
             fbo.use()
             ctx.enable(moderngl.DEPTH_TEST)
@@ -236,7 +244,6 @@ class StereoSynthesizer:
             ctx.depth_func = "<"
             if previous is not None:
                 previous.use()
-            fbo.release()
 
     def rerender_disoccluded(self, draw_fn: DrawFn, result: StereoResult | None = None) -> StereoResult:
         """Mode 2: re-render only the masked pixels of the other eye with `draw_fn` (see `DrawFn`) and composite
@@ -258,8 +265,10 @@ class StereoSynthesizer:
         return StereoResult(self.merged, result.mask, result.camera)
 
     def release(self) -> None:
-        for obj in (self.fullscreen, self.targets, self.imbuffer, self.color, self.mask, self.merged):
+        for obj in (self.fullscreen, self.targets, self.imbuffer, self.color, self.mask, self.merged,
+                    *self._cull_fbos.values()):
             obj.release()
+        self._cull_fbos.clear()
 
 
 def deferred_draw_fn(renderer, t: float = 0.0) -> DrawFn:
@@ -330,7 +339,7 @@ def benchmark_stereo(renderer, camera: Camera, t: float = 0.0, synthesizer: Ster
         _, ms3 = timed(lambda: renderer.gbuffer(result.camera, t))
         synth_ms.append(ms1), rerender_ms.append(ms2), render_ms.append(ms3)
     truth = renderer.gbuffer(result.camera, t).read_color()
-    fractions = float(result.read_disocclusion().mean()), float(result.read_rerender_mask().mean())
+    fractions = tuple(float(m.mean()) for m in result.read_masks())
     if synthesizer is None:
         synth.release()
     return StereoBenchmark(left, synthesized, rerendered, truth, *fractions, float(np.median(synth_ms[1:])),
@@ -439,8 +448,8 @@ class MeshStereo:
                     return self.other_view.color
                 result = timed("rerender", lambda: self.synth.rerender_disoccluded(draw, result))
             other_img = result.read_color()
-            mask = result.read_rerender_mask()
-            fractions = (float(result.read_disocclusion().mean()), float(mask.mean()))
+            disoccluded, mask = result.read_masks()
+            fractions = (float(disoccluded.mean()), float(mask.mean()))
         left, right = (dominant_img, other_img) if self.synth.dominant == "left" else (other_img, dominant_img)
         return StereoFrame(left, right, self.synth.dominant, mode, other_cam, ms, rendered, *fractions, mask)
 

@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.errors import ProtocolError
-from protocol.frame import FramePayload, decode_frame_payload, encode_frame_payload
-from protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Hello, PoseUpdate,
+from protocol.frame import encode_frame_payload
+from protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
                                ReferenceRequest, Welcome)
 from render.camera import Pose
 from server.prediction import PosePredictor
@@ -132,7 +132,7 @@ class FrameQueue:
         if max_frames < 1:
             raise ValueError(f"FrameQueue: max_frames must be >= 1, got {max_frames}")
         self.max_frames = max_frames
-        self._frames: collections.deque[FramePayload] = collections.deque()
+        self._frames: collections.deque = collections.deque()
         self._ready = asyncio.Event()
         self.broken = False
         self.stats = QueueStats()
@@ -140,26 +140,25 @@ class FrameQueue:
     def __len__(self) -> int:
         return len(self._frames)
 
-    def push(self, payload: FramePayload, self_contained: bool | None = None) -> bool:
-        """Offer a frame; returns True when the caller must send a self-contained frame next."""
-        if self_contained is None:
-            self_contained = is_self_contained(payload)
+    def push(self, frame, self_contained: bool) -> bool:
+        """Offer a frame (any object: the queue looks only at `self_contained`); returns True when the caller
+        must send a self-contained frame next."""
         self.stats.pushed += 1
         if self_contained:
             self.stats.dropped_stale += len(self._frames)
             self._frames.clear()
-            self._frames.append(payload)
+            self._frames.append(frame)
             self.broken = False
         elif self.broken or len(self._frames) >= self.max_frames:
             self.stats.dropped_new += 1
             self.broken = True
         else:
-            self._frames.append(payload)
+            self._frames.append(frame)
         if self._frames:
             self._ready.set()
         return self.broken
 
-    async def pop(self) -> FramePayload:
+    async def pop(self):
         """The oldest queued frame (waits for one)."""
         while not self._frames:
             self._ready.clear()
@@ -202,13 +201,11 @@ class SessionPipeline:
                               viewcell_radius=spec.viewcell_m, reference_every=spec.reference_every, crf=spec.crf)
         self.server = make_server(spec.method, self.renderer, config)
 
-    def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool, dict]:
+    def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool]:
         if reference:
             self.server.request_reference()
-        t0 = time.perf_counter()
         payload = self.server.encode(Pose(np.asarray(position, np.float64), np.asarray(quat, np.float64)), t)
-        stats = {"encode_ms": (time.perf_counter() - t0) * 1e3, "pid": os.getpid()}
-        return encode_frame_payload(payload), is_self_contained(payload), stats
+        return encode_frame_payload(payload), is_self_contained(payload)
 
     def close(self) -> None:
         self.server.close()
@@ -233,7 +230,7 @@ class SessionHost:
         self.pipeline = SessionPipeline(spec, scene=self.scene)
         return os.getpid()
 
-    def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool, dict]:
+    def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool]:
         if self.pipeline is None:
             raise RuntimeError("SessionHost.encode: no pipeline built")
         return self.pipeline.encode(position, quat, t, reference)
@@ -262,7 +259,7 @@ class _ThreadWorker:
                                                timeout)
         return self.pid
 
-    async def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool, dict]:
+    async def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool]:
         return await self.gl.call(self.pipeline.encode, position, quat, t, reference)
 
     @property
@@ -301,7 +298,7 @@ class _ProcessWorker:
         self.pid = await asyncio.wait_for(self.proc.call("build", self.spec), timeout)
         return self.pid
 
-    async def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool, dict]:
+    async def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool]:
         return await self.proc.call("encode", np.asarray(position), np.asarray(quat), float(t), bool(reference))
 
     @property
@@ -340,7 +337,7 @@ class SessionStats:
     frames_sent: int = 0
     bytes_sent: int = 0
     reference_requests: int = 0
-    encode_ms: list = field(default_factory=list)
+    encode_ms_total: float = 0.0
 
 
 class Session:
@@ -357,8 +354,6 @@ class Session:
         self.last_pose: PoseUpdate | None = None
         self.last_pose_local = 0.0
         self.encode_ema_s = 0.1
-        self._busy = False
-        self._done = asyncio.Event()
 
     # -- handshake
 
@@ -443,10 +438,9 @@ class Session:
             await asyncio.gather(*tasks, return_exceptions=True)
             await self.channel.close()
             await self._release()
-            enc = self.stats.encode_ms
             log.info("session %d ended: %d poses, %d frames encoded (mean %.0f ms each), %d sent (%d bytes), "
                      "%d reference requests, queue dropped %d stale + %d new", self.id, self.stats.poses,
-                     self.stats.frames_encoded, sum(enc) / len(enc) if enc else 0.0, self.stats.frames_sent,
+                     self.stats.frames_encoded, self.stats.encode_ms_total / max(self.stats.frames_encoded, 1), self.stats.frames_sent,
                      self.stats.bytes_sent, self.stats.reference_requests, self.queue.stats.dropped_stale,
                      self.queue.stats.dropped_new)
 
@@ -510,15 +504,15 @@ class Session:
         await self.worker.died.wait()
         raise SessionError(ErrorCode.INTERNAL, f"session worker died: {self.worker.death}")
 
-    async def _encode(self, pose: Pose, t: float, reference: bool) -> tuple[FramePayload, bool]:
-        """One frame from the worker, parsed back (cheap: header and slices) for the queue and the transport."""
+    async def _encode(self, pose: Pose, t: float, reference: bool) -> tuple[Frame, bool]:
+        """One frame from the worker, as the wire message that carries it (the worker's bytes, not re-encoded)."""
         try:
-            data, self_contained, _ = await self.worker.encode(pose.position, pose.quat, t, reference)
+            data, self_contained = await self.worker.encode(pose.position, pose.quat, t, reference)
         except WorkerDied as exc:
             raise SessionError(ErrorCode.INTERNAL, f"session worker died: {exc}") from None
         except WorkerError as exc:
             raise SessionError(ErrorCode.INTERNAL, f"render/encode failed: {exc}") from None
-        return decode_frame_payload(data, max_bytes=max(len(data), 1)), self_contained
+        return Frame(data), self_contained
 
     async def _ticker(self) -> None:
         loop = asyncio.get_running_loop()
@@ -527,28 +521,24 @@ class Session:
         while True:
             next_tick = max(next_tick + period, loop.time())
             await asyncio.sleep(max(0.0, next_tick - loop.time()))
-            if self.last_pose is None or self._busy:
+            if self.last_pose is None:
                 continue
             pose, show_at = self._target(loop.time())
             reference, self.want_reference = self.want_reference, False
-            self._busy = True
             t0 = time.perf_counter()
-            try:
-                payload, self_contained = await self._encode(pose, show_at, reference)
-            finally:
-                self._busy = False
+            frame, self_contained = await self._encode(pose, show_at, reference)   # one encode at a time
             dt = time.perf_counter() - t0
             self.encode_ema_s = 0.8 * self.encode_ema_s + 0.2 * dt
             self.stats.frames_encoded += 1
-            self.stats.encode_ms.append(dt * 1e3)
-            if self.queue.push(payload, self_contained):
+            self.stats.encode_ms_total += dt * 1e3
+            if self.queue.push(frame, self_contained):
                 self.want_reference = True    # a frame was refused: the next one must stand alone
 
     async def _sender(self) -> None:
         while True:
-            payload = await self.queue.pop()
+            frame = await self.queue.pop()
             before = self.channel.bytes_out
-            await self.channel.send_frame(payload)
+            await self.channel.send(frame)
             self.stats.frames_sent += 1
             self.stats.bytes_sent += self.channel.bytes_out - before
 

@@ -34,7 +34,7 @@ import av
 import numpy as np
 from av.video.frame import PictureType
 
-__all__ = ["VideoSettings", "EncodedFrame", "AtlasEncoder"]
+__all__ = ["VideoSettings", "EncodedFrame", "AtlasEncoder", "contains_idr"]
 
 X264_PRESETS = (
     "ultrafast",
@@ -126,7 +126,7 @@ class EncodedFrame:
     encode_ms: float
 
 
-def _contains_idr_slice(access_unit: bytes) -> bool:
+def contains_idr(access_unit: bytes) -> bool:
     """Whether an Annex-B access unit holds an IDR slice NAL unit (type 5)."""
     return any(
         header[0] & 0x1F == _NAL_IDR_SLICE
@@ -235,7 +235,7 @@ class AtlasEncoder:
         data = bytes(packets[0])
         encode_ms = (time.perf_counter() - start) * 1000.0
 
-        is_idr = _contains_idr_slice(data)
+        is_idr = contains_idr(data)
         if keyframe and not is_idr:
             raise RuntimeError(
                 f"libx264 did not produce an IDR for forced keyframe {self._frame_index}"

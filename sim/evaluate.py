@@ -7,7 +7,6 @@ identical for the same seed), frames.csv (one row per scored frame), report.html
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -19,7 +18,7 @@ from render.scene import load_scene
 from sim.methods import MethodConfig, make_client, make_server
 from sim.metrics import compare
 from sim.replay import DisplayedFrame, ReplayConfig, replay
-from sim.report import FrameImages, write_frames_csv, write_report_html, write_summary_json
+from sim.report import FrameImages, format_figure, write_frames_csv, write_report_html, write_summary_json
 from sim.traces import resolve_trace
 
 WALLCLOCK_KEYS = ("server_ms", "client_ms")
@@ -72,7 +71,7 @@ class _Scorer:
 
     def score(self, index: int, t: float, pose: Pose, image: np.ndarray, extra: dict) -> None:
         camera = Camera.perspective(pose, self.width, self.height, self.fovy)
-        gt = self.renderer.render(camera, t).color
+        gt = self.renderer.render_color(camera, t)
         s = compare(gt, image)
         rec = {"frame": index, "t": t, "flip": s.flip, "ssim": s.ssim, "psnr": s.psnr, **extra}
         self.records.append(rec)
@@ -151,9 +150,8 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
         res = [s["bytes_geometry"] + s["bytes_video"] for s in stats if s.get("type") == "residual"]
         summary["residual_to_reference_bytes"] = float(np.mean(res) / np.mean(ref)) if ref and res else None
     stereo_rows = [r for r in scorer.stereo_rows if r is not None]
-    if stereo is not None and stereo_rows:
-        summary["stereo"] = {k: float(np.mean([r[k] for r in stereo_rows]))
-                             for k in ("ssim", "psnr", "flip", "cost_ratio")}
+    if stereo_rows:
+        summary["stereo"] = stereo_summary(stereo_rows)
     if out is not None:
         write_outputs(Path(out), summary, scored, [f for _, f in scorer.worst])
     return summary
@@ -191,7 +189,7 @@ def score_stereo_eye(renderer: DeferredRenderer, camera: Camera, t: float, eye_p
     """One synthesized eye against ground truth (the deferred renderer at `camera` moved to `eye_pose`, time `t`):
     `ssim`, `psnr`, `flip`, and the frame's `cost_ratio` as given. Shared by `quadcast eval --stereo`
     (`_stereo_scorer`) and live recordings (`evaluate_recording`)."""
-    truth = renderer.render(camera.with_pose(eye_pose), t).color
+    truth = renderer.render_color(camera.with_pose(eye_pose), t)
     s = compare(truth, synthesized)
     return {"ssim": s.ssim, "psnr": s.psnr, "flip": s.flip, "cost_ratio": cost_ratio}
 
@@ -316,8 +314,7 @@ def strip_wallclock(summary: dict) -> dict:
 
 
 def format_summary(s: dict) -> str:
-    def f(v, fmt):
-        return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
+    f = format_figure
     return (f"{s['method']:>11s} {s.get('latency_ms', 0):>4g}±{s.get('jitter_ms', 0):<3g}ms vc {s['viewcell_m']:g} m: "
             f"{f(s['mbps'], '8.2f')} Mbps (video {f(s.get('mbps_video'), '.2f')}, geometry "
             f"{f(s.get('mbps_geometry'), '.2f')})  FLIP {f(s['flip'], '.4f')}  SSIM {f(s['ssim'], '.4f')}  "

@@ -9,7 +9,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 import signal
 import sys
 
@@ -92,8 +91,7 @@ def cmd_server(args) -> int:
 
 def format_live_summary(s: dict) -> str:
     """One line of a live run's figures."""
-    def f(v, fmt):
-        return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
+    from sim.report import format_figure as f
     return (f"{s.get('method')} on {s.get('trace')} ({s.get('transport', 'tcp')}, {s.get('size')}): "
             f"{f(s.get('mbps'), '.2f')} Mbps on the socket (video {f(s.get('mbps_video'), '.2f')}, geometry "
             f"{f(s.get('mbps_geometry'), '.2f')})  FLIP {f(s.get('flip'), '.4f')}  SSIM {f(s.get('ssim'), '.4f')}  "

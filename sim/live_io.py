@@ -37,6 +37,7 @@ import moderngl
 from protocol.frame import FramePayload
 from protocol.messages import Frame, Message, MessageDecoder, encode_message
 from render.gl import EGL_PACKAGES, REQUIRED_GL, GLUnavailableError
+from server.video import contains_idr
 
 __all__ = ["GLWorker", "ProcessWorker", "WorkerError", "WorkerDied", "Channel", "TcpChannel", "open_tcp_channel", "contains_idr", "is_self_contained"]
 
@@ -108,11 +109,6 @@ class GLWorker:
     async def call(self, fn: Callable[..., Any], *args) -> Any:
         """Run ``fn(*args)`` on the GL thread without blocking the event loop."""
         return await asyncio.wrap_future(self.submit(fn, *args))
-
-    @property
-    def pending(self) -> int:
-        """Jobs queued and not started."""
-        return len(self._jobs)
 
     def close(self, timeout: float = 30.0) -> None:
         """Run what is queued, then stop the thread and release the context."""
@@ -304,11 +300,6 @@ class ProcessWorker:
         self._reader.join(timeout=5.0)
         self._conn.close()
 
-
-def contains_idr(access_unit: bytes) -> bool:
-    """Whether an Annex-B H.264 access unit holds an IDR slice (NAL type 5)."""
-    from client.video import nal_unit_types
-    return 5 in nal_unit_types(access_unit)
 
 
 def is_self_contained(payload: FramePayload) -> bool:

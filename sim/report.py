@@ -170,6 +170,13 @@ def flatten_record(record: Mapping[str, Any], prefix: str = "") -> dict[str, Any
     return out
 
 
+def format_figure(value: Any, spec: str) -> str:
+    """A figure for a console line: ``format(value, spec)``, or '–' when it is missing (None or NaN)."""
+    if value is None or (isinstance(value, (float, np.floating)) and math.isnan(value)):
+        return "–"
+    return format(value, spec)
+
+
 def format_value(value: Any) -> str:
     """How a value is shown in the HTML tables: floats with 4 significant digits, None/NaN as '–'."""
     if value is None:

@@ -411,8 +411,6 @@ class WebRtcListener:
                 log.warning("webrtc %s: data channels did not open within %g s", peer, self.open_timeout)
                 await pc.close()
                 return
-            finally:
-                pass
             channel = WebRtcChannel(pc, channels, self.max_message_bytes, video_out=track, peer=peer)
             try:
                 await self.on_channel(channel)
