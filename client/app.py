@@ -1,22 +1,22 @@
 """The live headless client (``quadcast client``): follows a trace in wall-clock time against a live server.
 
-:class:`LiveClient` connects (TCP, or WebRTC through :mod:`sim.webrtc`), says Hello, and from the Welcome on
+:class:`LiveClient` connects (TCP, or WebRTC through :mod:`quadcast.transport.webrtc`), says Hello, and from the Welcome on
 runs on its own clock ``t`` (seconds of trace since ``start``): it sends the trace pose at ``t`` at 30 Hz, and at
-60 Hz applies every frame that arrived (in order, on a :class:`sim.live_io.GLWorker` thread) and renders the
+60 Hz applies every frame that arrived (in order, on a :class:`quadcast.transport.channel.GLWorker` thread) and renders the
 newest state at the true pose of ``t``. Every ``record_every``-th displayed frame (after the first applied one)
-is saved as a PNG with its figures in ``recording.json``; on exit :func:`sim.evaluate.evaluate_recording` renders
+is saved as a PNG with its figures in ``recording.json``; on exit :func:`quadcast.sim.evaluate.evaluate_recording` renders
 ground truth for those frames and writes the same ``summary.json`` / ``frames.csv`` / ``report.html`` as
 ``quadcast eval``, with Mbps measured on the socket.
 
 ``stereo=True`` (``--stereo``, quasar and quadstream only): every displayed frame is also a stereo pair made by
-:meth:`client.quasar.QuasarClient.stereo_frame` -- the left eye drawn from the quad mesh, the right eye
+:meth:`quadcast.client.quasar.QuasarClient.stereo_frame` -- the left eye drawn from the quad mesh, the right eye
 synthesized with YORO (mode ``"yoro"``). Recorded frames keep both eyes (``frames/left_*.png``,
 ``frames/right_*.png``), the right eye's pose and the frame's cost ratio (the right eye also rendered from the
 mesh, as ``quadcast eval --stereo`` does), and the summary gets ``stereo`` = {ssim, psnr, flip, cost_ratio} of the
-synthesized right eye against the ground-truth right eye, scored by :func:`sim.evaluate.evaluate_recording` with
+synthesized right eye against the ground-truth right eye, scored by :func:`quadcast.sim.evaluate.evaluate_recording` with
 the same code as ``quadcast eval --stereo``. The head-pose image is still recorded and scored for the main figures.
 
-The GL work runs on a :class:`sim.live_io.GLWorker` *thread*: moderngl holds the GIL during GL calls, so the
+The GL work runs on a :class:`quadcast.transport.channel.GLWorker` *thread*: moderngl holds the GIL during GL calls, so the
 client's event loop (pose sending, frame receiving) can stall while a frame renders. The client's pose I/O matters
 less than the server's (which uses a worker process per session); poses are stamped with the client's clock when
 sent, so a late pose is late, not wrong.
@@ -39,15 +39,15 @@ from pathlib import Path
 
 import numpy as np
 
-from client.video import VideoError
-from protocol.errors import ProtocolError
-from protocol.frame import FramePayload, PayloadType
-from protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
+from quadcast.codec.decoder import VideoError
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.frame import FramePayload, PayloadType
+from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
                                ReferenceRequest, Welcome)
-from render.camera import Pose
-from sim.live_io import Channel, GLWorker, is_self_contained, open_tcp_channel
-from sim.methods import METHODS, MethodConfig
-from sim.traces import resolve_trace
+from quadcast.render.camera import Pose
+from quadcast.transport.channel import Channel, GLWorker, is_self_contained, open_tcp_channel
+from quadcast.methods import METHODS, MethodConfig
+from quadcast.render.traces import resolve_trace
 
 __all__ = ["ClientConfig", "ClientTotals", "LiveClient", "FatalServerError", "STEREO_METHODS"]
 
@@ -179,7 +179,7 @@ class LiveClient:
         cfg = self.cfg
         if cfg.transport == "tcp":
             return await open_tcp_channel(cfg.host, cfg.port, cfg.max_message_bytes, cfg.connect_timeout)
-        from sim.webrtc import open_webrtc_channel
+        from quadcast.transport.webrtc import open_webrtc_channel
         return await open_webrtc_channel(cfg.host, cfg.port, cfg.max_message_bytes, cfg.connect_timeout)
 
     async def _handshake(self) -> Channel:
@@ -326,7 +326,7 @@ class LiveClient:
     # ------------------------------------------------------------------ GL side
 
     def _setup(self) -> None:
-        from sim.methods import make_client
+        from quadcast.methods import make_client
         cfg = self.cfg
         self.method_client = make_client(cfg.method, MethodConfig(width=cfg.width, height=cfg.height,
                                                                   fovy_deg=cfg.fovy_deg), self.worker.ctx)
@@ -476,7 +476,7 @@ class LiveClient:
     def score(self) -> dict:
         """Ground truth for the recorded frames, FLIP/SSIM/PSNR, summary.json + frames.csv + report.html (call
         after :meth:`run`, outside the event loop: it renders on the calling thread's GL context)."""
-        from sim.evaluate import evaluate_recording
+        from quadcast.sim.evaluate import evaluate_recording
         return evaluate_recording(self.out)
 
     def _write_recording(self) -> None:

@@ -3,7 +3,7 @@
 `ATWClient` shows the last decoded frame re-oriented to the current head rotation (a homography in
 `atw.frag.glsl`; translation is ignored, so near objects swim). Outside the frame it repeats the closest edge pixel.
 
-`MeshWarpClient` also decodes the frame's depth (`protocol.depth`) and draws it as a grid mesh with **one vertex per
+`MeshWarpClient` also decodes the frame's depth (`quadcast.protocol.depth`) and draws it as a grid mesh with **one vertex per
 depth pixel** (`meshwarp.vert.glsl` builds the vertices from the depth texture and `gl_VertexID`, so nothing but a
 static index buffer lives in a vertex buffer). Like QUASAR's MeshWarp, the mesh stays **connected**: triangles across
 depth discontinuities are stretched, not dropped, so disocclusions show smeared colour rather than holes; sky pixels
@@ -23,14 +23,14 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from client.method import MethodClient
-from client.video import AtlasDecoder
-from protocol.depth import DEFAULT_MAX_DEPTH_PIXELS, decode_depth
-from protocol.errors import ProtocolError
-from protocol.frame import FramePayload, Method
-from render.camera import Camera, Frustum, Pose, gl_matrix
-from render.gl import RENDER_DIR, gl_context, program, set_uniforms
-from render.renderer import read_texture
+from quadcast.client.method import MethodClient
+from quadcast.codec.decoder import AtlasDecoder
+from quadcast.protocol.depth import DEFAULT_MAX_DEPTH_PIXELS, decode_depth
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.frame import FramePayload, Method
+from quadcast.render.camera import Camera, Frustum, Pose, gl_matrix
+from quadcast.render.gl import RENDER_DIR, gl_context, program, set_uniforms
+from quadcast.render.renderer import read_texture
 
 __all__ = ["ATWClient", "MeshWarpClient", "rotation_homography"]
 

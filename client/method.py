@@ -5,8 +5,8 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from protocol.frame import FramePayload
-from render.camera import Pose
+from quadcast.protocol.frame import FramePayload
+from quadcast.render.camera import Pose
 
 
 class MethodClient(ABC):

@@ -7,16 +7,16 @@ import time
 import moderngl
 import numpy as np
 
-from client.method import MethodClient
-from client.stereo import STEREO_MODES, MeshStereo, StereoFrame
-from client.video import AtlasDecoder, VideoError
-from protocol.errors import ProtocolError
-from protocol.frame import FramePayload, Method, PayloadType
-from protocol.quads import FrameType, LayerKind, QuadFrame, decode_quad_frame
-from render.camera import DEFAULT_IPD_M, Camera, Frustum, Pose
-from render.gl import gl_context
-from render.quadcache import QuadCache
-from render.quadmesh import MeshLayer, MeshView, QuadMesh
+from quadcast.client.method import MethodClient
+from quadcast.client.stereo import STEREO_MODES, MeshStereo, StereoFrame
+from quadcast.codec.decoder import AtlasDecoder, VideoError
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.frame import FramePayload, Method, PayloadType
+from quadcast.protocol.quads import FrameType, LayerKind, QuadFrame, decode_quad_frame
+from quadcast.render.camera import DEFAULT_IPD_M, Camera, Frustum, Pose
+from quadcast.render.gl import gl_context
+from quadcast.render.quadcache import QuadCache
+from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 
 
 # Fill-in layers sit farther along the eye rays (hidden 0.3%; wide FOV 2%, its relaxed half-resolution planes are

@@ -39,10 +39,10 @@ from typing import Callable
 import moderngl
 import numpy as np
 
-from render.camera import DEFAULT_IPD_M, Camera, Pose, gl_matrix
-from render.gl import RENDER_DIR, compute, program, set_uniforms
-from render.quadmesh import MeshView, QuadMesh
-from render.renderer import GBuffer, read_texture
+from quadcast.render.camera import DEFAULT_IPD_M, Camera, Pose, gl_matrix
+from quadcast.render.gl import RENDER_DIR, compute, program, set_uniforms
+from quadcast.render.quadmesh import MeshView, QuadMesh
+from quadcast.render.renderer import GBuffer, read_texture
 
 HERE = Path(__file__).resolve().parent
 
@@ -272,7 +272,7 @@ class StereoSynthesizer:
 
 
 def deferred_draw_fn(renderer, t: float = 0.0) -> DrawFn:
-    """A `DrawFn` for `render.renderer.DeferredRenderer` at time `t`: geometry pass into its own G-buffer over
+    """A `DrawFn` for `quadcast.render.renderer.DeferredRenderer` at time `t`: geometry pass into its own G-buffer over
     the culling depth (culled pixels stay empty, so the lighting pass treats them as cheap sky), then the
     lighting pass. The G-buffer last drawn is `draw_fn.gbuffer`."""
     targets: dict[tuple[int, int], GBuffer] = {}
@@ -390,7 +390,7 @@ class StereoFrame:
 
 
 class MeshStereo:
-    """Stereo for a client that shows a `render.quadmesh.QuadMesh`: the dominant eye is drawn into the client's
+    """Stereo for a client that shows a `quadcast.render.quadmesh.QuadMesh`: the dominant eye is drawn into the client's
     `MeshView`, whose colour and view-position targets feed the `StereoSynthesizer`; mode 2 re-renders the masked
     pixels of the other eye from the same mesh into a second `MeshView` (`MeshView.render_masked`)."""
 
@@ -460,9 +460,9 @@ class MeshStereo:
 
 
 def stereo_pair(client, pose, mode: str = "yoro") -> tuple[np.ndarray, np.ndarray]:
-    """(left, right) eye images of any `client.method.MethodClient` at head `pose`. Clients that keep a depth
+    """(left, right) eye images of any `quadcast.client.method.MethodClient` at head `pose`. Clients that keep a depth
     buffer (QuasarClient: quasar, quadstream) support every mode of `STEREO_MODES`; the others (ATW, MeshWarp) only
-    `both`, which renders each eye with `client.render`."""
+    `both`, which renders each eye with `quadcast.client.render`."""
     if mode not in STEREO_MODES:
         raise ValueError(f"stereo mode must be one of {', '.join(STEREO_MODES)}, got {mode!r}")
     if hasattr(client, "render_stereo"):

@@ -1,7 +1,7 @@
 """Sans-I/O wire formats of quadcast (numpy + zstandard only)."""
 
-from protocol.errors import ProtocolError
-from protocol.quads import (
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.quads import (
     FrameType,
     LayerKind,
     QuadFrame,
@@ -32,6 +32,6 @@ __all__ = [
     "unpack_normals",
 ]
 
-from protocol.frame import FramePayload, Method, PayloadType, decode_frame_payload, encode_frame_payload  # noqa: E402
+from quadcast.protocol.frame import FramePayload, Method, PayloadType, decode_frame_payload, encode_frame_payload  # noqa: E402
 
 __all__ += ["FramePayload", "Method", "PayloadType", "decode_frame_payload", "encode_frame_payload"]

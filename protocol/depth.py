@@ -25,7 +25,7 @@ import struct
 import numpy as np
 import zstandard
 
-from protocol.errors import ProtocolError
+from quadcast.protocol.errors import ProtocolError
 
 __all__ = ["encode_depth", "decode_depth", "DEPTH_MAGIC", "DEPTH_VERSION", "BLOCK", "LEVELS", "SKY_CODE",
            "DEFAULT_MAX_DEPTH_PIXELS"]

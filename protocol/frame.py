@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.errors import ProtocolError
+from quadcast.protocol.errors import ProtocolError
 
 FRAME_MAGIC = b"QDCF"
 FRAME_VERSION = 1

@@ -17,7 +17,7 @@ message            id   body
 Hello              1    version u16, width u32, height u32, fovy_deg f64, method str, token str
 Welcome            2    session_id u64, server_hz f64
 PoseUpdate         3    seq u64, t_client f64, position 3 x f64, quat 4 x f64 (xyzw)
-Frame              4    the rest of the message: an encoded :class:`protocol.frame.FramePayload`
+Frame              4    the rest of the message: an encoded :class:`quadcast.protocol.frame.FramePayload`
 ReferenceRequest   5    reason str
 ErrorMessage       6    code u16, text str
 Bye                7    (empty)
@@ -44,8 +44,8 @@ from typing import Union
 
 import numpy as np
 
-from protocol.errors import ProtocolError
-from protocol.frame import DEFAULT_MAX_FRAME_BYTES, FramePayload, decode_frame_payload, encode_frame_payload
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.frame import DEFAULT_MAX_FRAME_BYTES, FramePayload, decode_frame_payload, encode_frame_payload
 
 __all__ = [
     "PROTOCOL_VERSION",
@@ -220,7 +220,7 @@ class PoseUpdate:
 
     @classmethod
     def from_pose(cls, seq: int, t_client: float, pose) -> "PoseUpdate":
-        """Build from anything with ``.position`` (3,) and ``.quat`` (4,) (e.g. :class:`render.camera.Pose`)."""
+        """Build from anything with ``.position`` (3,) and ``.quat`` (4,) (e.g. :class:`quadcast.render.camera.Pose`)."""
         return cls(seq, t_client, pose.position, pose.quat)
 
     def __eq__(self, other) -> bool:
@@ -234,7 +234,7 @@ class PoseUpdate:
 
 @dataclass(frozen=True)
 class Frame:
-    """Server -> client: one encoded :class:`protocol.frame.FramePayload` (opaque bytes at this layer)."""
+    """Server -> client: one encoded :class:`quadcast.protocol.frame.FramePayload` (opaque bytes at this layer)."""
 
     payload: bytes
 
@@ -245,7 +245,7 @@ class Frame:
 
     @classmethod
     def from_payload(cls, payload: FramePayload) -> "Frame":
-        """Wrap a :class:`FramePayload` (encoded with :func:`protocol.frame.encode_frame_payload`)."""
+        """Wrap a :class:`FramePayload` (encoded with :func:`quadcast.protocol.frame.encode_frame_payload`)."""
         return cls(encode_frame_payload(payload))
 
     def decode(self, max_bytes: int = DEFAULT_MAX_FRAME_BYTES) -> FramePayload:

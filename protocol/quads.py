@@ -47,7 +47,7 @@ from typing import Any, NamedTuple, Sequence
 import numpy as np
 import zstandard
 
-from protocol.errors import ProtocolError
+from quadcast.protocol.errors import ProtocolError
 
 __all__ = [
     "BLOB_MAGIC",

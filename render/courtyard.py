@@ -13,7 +13,7 @@ import numpy as np
 import trimesh
 from scipy.ndimage import zoom
 
-from render.scene import (Animation, DirectionalLight, Material, Mesh, PointLight, Scene, SceneObject,
+from quadcast.render.scene import (Animation, DirectionalLight, Material, Mesh, PointLight, Scene, SceneObject,
                           compose_transform)
 
 HALF = 8.0          # the open square's half-size

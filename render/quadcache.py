@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol.quads import QuadSet
+from quadcast.protocol.quads import QuadSet
 
 
 class QuadCache:

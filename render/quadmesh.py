@@ -13,10 +13,10 @@ from typing import Callable
 import moderngl
 import numpy as np
 
-from protocol.quads import QuadSet
-from render.camera import Camera, gl_matrix
-from render.gl import compute, program, set_uniforms
-from render.renderer import read_texture
+from quadcast.protocol.quads import QuadSet
+from quadcast.render.camera import Camera, gl_matrix
+from quadcast.render.gl import compute, program, set_uniforms
+from quadcast.render.renderer import read_texture
 
 HERE = Path(__file__).resolve().parent
 QUAD_FLOATS = 24  # uvec4 head, vec4 normal+depth, 4 x vec4 offsets

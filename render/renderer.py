@@ -12,9 +12,9 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from render.camera import Camera, gl_matrix
-from render.gl import gl_context, program, set_uniforms
-from render.scene import Scene
+from quadcast.render.camera import Camera, gl_matrix
+from quadcast.render.gl import gl_context, program, set_uniforms
+from quadcast.render.scene import Scene
 
 HERE = Path(__file__).resolve().parent
 
@@ -147,7 +147,7 @@ class DeferredRenderer:
         sun = self.scene.sun
         d = np.asarray(sun.direction, np.float64) / np.linalg.norm(sun.direction)
         e = sun.shadow_extent
-        from render.camera import Pose
+        from quadcast.render.camera import Pose
         eye = np.asarray(sun.shadow_center, np.float64) - d * 2 * e
         up = (0.0, 1.0, 0.0) if abs(d[1]) < 0.99 else (1.0, 0.0, 0.0)
         view = Pose.look_at(eye, sun.shadow_center, up).view_matrix()

@@ -202,7 +202,7 @@ def load_scene(spec: str | Path) -> Scene:
     """A scene from `builtin:courtyard`, `monastery`, a scene file (.json/.toml) or a mesh file."""
     spec = str(spec)
     if spec.startswith("builtin:"):
-        from render.courtyard import BUILTIN_SCENES
+        from quadcast.render.courtyard import BUILTIN_SCENES
         name = spec.split(":", 1)[1]
         if name not in BUILTIN_SCENES:
             raise SceneError(f"unknown built-in scene {spec!r}; built-ins are "

@@ -1,11 +1,11 @@
 """The live quadcast server (``quadcast server``): an asyncio process streaming one method to several clients.
 
-Per connection (:class:`Session`): the client's :class:`protocol.messages.Hello` is checked (version, method,
+Per connection (:class:`Session`): the client's :class:`quadcast.protocol.messages.Hello` is checked (version, method,
 size, token) before anything is allocated; then the session's :class:`SessionPipeline` (renderer + the method's
-server, with their own GL context) runs in a worker *process* of its own (:class:`sim.live_io.ProcessWorker`,
+server, with their own GL context) runs in a worker *process* of its own (:class:`quadcast.transport.channel.ProcessWorker`,
 ``spawn``), so the event loop only moves messages: it sends (pose, time, reference?) down a pipe and gets the
 encoded payload bytes back. (moderngl holds the GIL during GL calls, so a worker *thread* -- ``worker="thread"``,
-kept for comparison, see :mod:`sim.live_stall` -- stalls the loop while it renders.) Poses go into a
+kept for comparison, see :mod:`quadcast.cli.stall` -- stalls the loop while it renders.) Poses go into a
 :class:`PosePredictor` on the loop; a 30 Hz ticker starts one encode at a time (when the worker is idle) for the
 pose predicted at the frame's display time; encoded frames wait in a bounded :class:`FrameQueue` until the socket
 takes them.
@@ -31,15 +31,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.errors import ProtocolError
-from protocol.frame import encode_frame_payload
-from protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.frame import encode_frame_payload
+from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
                                ReferenceRequest, Welcome)
-from render.camera import Pose
-from server.prediction import PosePredictor
-from sim.live_io import (Channel, GLWorker, ProcessWorker, TcpChannel, WorkerDied, WorkerError,
+from quadcast.render.camera import Pose
+from quadcast.protocol.prediction import PosePredictor
+from quadcast.transport.channel import (Channel, GLWorker, ProcessWorker, TcpChannel, WorkerDied, WorkerError,
                          is_self_contained)
-from sim.methods import METHODS, MethodConfig
+from quadcast.methods import METHODS, MethodConfig
 
 __all__ = ["ServerConfig", "FrameQueue", "PipelineSpec", "SessionPipeline", "Session", "LiveServer", "check_bind"]
 
@@ -187,14 +187,14 @@ class SessionPipeline:
 
     Built inside the worker: in a worker process (``ctx=None``) on the process's own headless GL context, with the
     scene loaded there; in a :class:`GLWorker` thread on that thread's context. :meth:`encode` renders and encodes
-    one frame and returns it as wire bytes (:func:`protocol.frame.encode_frame_payload`), whether it is
+    one frame and returns it as wire bytes (:func:`quadcast.protocol.frame.encode_frame_payload`), whether it is
     self-contained, and the server's figures for it.
     """
 
     def __init__(self, spec: PipelineSpec, ctx=None, scene=None) -> None:
-        from render.renderer import DeferredRenderer
-        from render.scene import load_scene
-        from sim.methods import make_server
+        from quadcast.render.renderer import DeferredRenderer
+        from quadcast.render.scene import load_scene
+        from quadcast.methods import make_server
         self.spec = spec
         self.renderer = DeferredRenderer(scene if scene is not None else load_scene(spec.scene), ctx)
         config = MethodConfig(width=spec.width, height=spec.height, fovy_deg=spec.fovy_deg,
@@ -218,8 +218,8 @@ class SessionHost:
     spare, so a new session waits for its pipeline, not for a process to boot."""
 
     def __init__(self, scene: str) -> None:
-        from render.gl import gl_context
-        from render.scene import load_scene
+        from quadcast.render.gl import gl_context
+        from quadcast.render.scene import load_scene
         gl_context()
         self.scene = load_scene(scene)
         self.pipeline: SessionPipeline | None = None
@@ -546,12 +546,12 @@ class Session:
 # ---------------------------------------------------------------------------------------------- server
 
 class LiveServer:
-    """Accepts connections (TCP, or WebRTC through :mod:`sim.webrtc`) and runs a :class:`Session` for each."""
+    """Accepts connections (TCP, or WebRTC through :mod:`quadcast.transport.webrtc`) and runs a :class:`Session` for each."""
 
     def __init__(self, config: ServerConfig, transport: str = "tcp") -> None:
         if transport not in ("tcp", "webrtc"):
             raise ValueError(f"--transport: expected tcp or webrtc, got {transport!r}")
-        from render.scene import load_scene
+        from quadcast.render.scene import load_scene
         self.config, self.transport = config, transport
         self.scene = load_scene(config.scene)
         self.active = 0
@@ -604,7 +604,7 @@ class LiveServer:
         if self.transport == "tcp":
             self._tcp = await asyncio.start_server(self._on_tcp, cfg.host, cfg.port, limit=1 << 16)
         else:
-            from sim.webrtc import WebRtcListener
+            from quadcast.transport.webrtc import WebRtcListener
             self._rtc = WebRtcListener(cfg.host, cfg.port, self.serve_channel,
                                        max_message_bytes=cfg.max_message_bytes)
             await self._rtc.start()

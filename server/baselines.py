@@ -1,7 +1,7 @@
 """Server halves of the two baselines QUASAR compares against (§4.1.1-4.1.2): ATW and MeshWarp.
 
 `ATWServer` renders the (predicted) pose and streams only its colour as H.264; the client re-orients it (asynchronous
-time warp). `MeshWarpServer` streams the colour plus the view's depth map (`protocol.depth`, BC4-like inverse depth
+time warp). `MeshWarpServer` streams the colour plus the view's depth map (`quadcast.protocol.depth`, BC4-like inverse depth
 + zstd) as the payload's `geometry`; the client turns the depth into a grid mesh and renders it from its own pose.
 QUASAR runs MeshWarp at the display's 60 degrees, and also at 120 degrees rendered at twice the resolution so a
 wider margin survives rotation; `MeshWarpServer(fovy=120)` does the latter by default (`render_scale`).
@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import time
 
-from protocol.depth import encode_depth
-from protocol.frame import FramePayload, Method, PayloadType
-from render.camera import Camera, Pose
-from render.renderer import DeferredRenderer
-from server.method import MethodServer
-from server.video import AtlasEncoder, VideoSettings
+from quadcast.protocol.depth import encode_depth
+from quadcast.protocol.frame import FramePayload, Method, PayloadType
+from quadcast.render.camera import Camera, Pose
+from quadcast.render.renderer import DeferredRenderer
+from quadcast.server.method import MethodServer
+from quadcast.codec.encoder import AtlasEncoder, VideoSettings
 
 __all__ = ["ATWServer", "MeshWarpServer", "DEFAULT_KEYFRAME_INTERVAL"]
 
@@ -105,7 +105,7 @@ class ATWServer(_VideoBaselineServer):
 
 
 class MeshWarpServer(_VideoBaselineServer):
-    """MeshWarp baseline: colour as H.264 plus the linear depth map as a `protocol.depth` blob (`geometry`).
+    """MeshWarp baseline: colour as H.264 plus the linear depth map as a `quadcast.protocol.depth` blob (`geometry`).
 
     `width` x `height` is the display size the frame is meant for; the server renders at `render_scale` times it
     (default 2 when `fovy` > 90 degrees, as QUASAR's 120-degree MeshWarp, else 1), rounded to even sizes.

@@ -8,9 +8,9 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from render.camera import Camera, Frustum
-from render.gl import program, set_uniforms
-from render.renderer import GBuffer, DeferredRenderer, read_texture
+from quadcast.render.camera import Camera, Frustum
+from quadcast.render.gl import program, set_uniforms
+from quadcast.render.renderer import GBuffer, DeferredRenderer, read_texture
 
 HERE = Path(__file__).resolve().parent
 RENDER_DIR = HERE.parent / "render"

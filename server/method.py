@@ -3,8 +3,8 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
-from protocol.frame import FramePayload
-from render.camera import Pose
+from quadcast.protocol.frame import FramePayload
+from quadcast.render.camera import Pose
 
 
 class MethodServer(ABC):

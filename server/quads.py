@@ -15,10 +15,10 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from protocol.quads import QuadSet
-from render.camera import Camera
-from render.gl import compute, set_uniforms
-from render.quadmesh import QUAD_FLOATS
+from quadcast.protocol.quads import QuadSet
+from quadcast.render.camera import Camera
+from quadcast.render.gl import compute, set_uniforms
+from quadcast.render.quadmesh import QUAD_FLOATS
 
 HERE = Path(__file__).resolve().parent
 ENTRY_BYTES = 20 * 4

@@ -9,17 +9,17 @@ import moderngl
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-from protocol.frame import FramePayload, Method, PayloadType
-from protocol.quads import FrameType, LayerKind, QuadFrame, QuadLayer, QuadSet, encode_quad_frame, \
+from quadcast.protocol.frame import FramePayload, Method, PayloadType
+from quadcast.protocol.quads import FrameType, LayerKind, QuadFrame, QuadLayer, QuadSet, encode_quad_frame, \
     packed_size_bits_per_quad
-from render.camera import Camera, Pose
-from render.quadcache import QuadCache
-from render.quadmesh import MeshLayer, MeshView, QuadMesh
-from render.renderer import DeferredRenderer, GBuffer
-from server.layers import AtlasComposer, AtlasLayout, LayerRenderer, wide_camera
-from server.method import MethodServer
-from server.quads import QuadGenerator, QuadParams, QuadTimings
-from server.video import AtlasEncoder, VideoSettings
+from quadcast.render.camera import Camera, Pose
+from quadcast.render.quadcache import QuadCache
+from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
+from quadcast.render.renderer import DeferredRenderer, GBuffer
+from quadcast.server.layers import AtlasComposer, AtlasLayout, LayerRenderer, wide_camera
+from quadcast.server.method import MethodServer
+from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings
+from quadcast.codec.encoder import AtlasEncoder, VideoSettings
 
 
 @dataclass

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from render.camera import Camera, Pose
-from render.renderer import DeferredRenderer
-from render.scene import load_scene
-from sim.methods import MethodConfig, make_client, make_server
-from sim.metrics import compare
-from sim.replay import DisplayedFrame, ReplayConfig, replay
-from sim.report import FrameImages, format_figure, write_frames_csv, write_report_html, write_summary_json
-from sim.traces import resolve_trace
+from quadcast.render.camera import Camera, Pose
+from quadcast.render.renderer import DeferredRenderer
+from quadcast.render.scene import load_scene
+from quadcast.methods import MethodConfig, make_client, make_server
+from quadcast.sim.metrics import compare
+from quadcast.sim.replay import DisplayedFrame, ReplayConfig, replay
+from quadcast.sim.report import FrameImages, format_figure, write_frames_csv, write_report_html, write_summary_json
+from quadcast.render.traces import resolve_trace
 
 WALLCLOCK_KEYS = ("server_ms", "client_ms")
 WORST_FRAMES = 3
@@ -213,7 +213,7 @@ def run_sweep(base: EvalSpec, out: Path, methods=SWEEP_METHODS, latencies=SWEEP_
     """Methods × latencies × viewcells (viewcells matter only to quasar and quadstream)."""
     from tqdm import tqdm
 
-    from sim.report import plot_quality_vs_rate, write_comparison_table
+    from quadcast.sim.report import plot_quality_vs_rate, write_comparison_table
     runs = []
     for method in methods:
         for lat, jit in latencies:

@@ -2,8 +2,8 @@
 
 :class:`LinkProxy` listens on ``listen_host:listen_port``; for every accepted connection it opens one to
 ``target_host:target_port`` and forwards both directions.  It forwards *messages*, not bytes: each direction
-splits its stream with :class:`protocol.messages.MessageSplitter` (u32 length framing) and offers every whole
-message to that direction's :class:`sim.link.LinkModel` at ``loop.time()``; the message is written out when
+splits its stream with :class:`quadcast.protocol.messages.MessageSplitter` (u32 length framing) and offers every whole
+message to that direction's :class:`quadcast.sim.link.LinkModel` at ``loop.time()``; the message is written out when
 the model says it arrives.  So loss drops whole messages (the receiver's framing never breaks), delay and
 jitter postpone them, and ``rate_mbit`` serializes them one after the other.  A stream that is not valid
 framing (length 0 or above ``max_message_bytes``) closes that connection, with a log line.
@@ -34,9 +34,9 @@ import collections
 import logging
 from dataclasses import dataclass, field
 
-from protocol.errors import ProtocolError
-from protocol.messages import DEFAULT_MAX_MESSAGE_BYTES, MessageSplitter
-from sim.link import LinkModel, parse_duration_ms, parse_loss, parse_rate_mbit
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.messages import DEFAULT_MAX_MESSAGE_BYTES, MessageSplitter
+from quadcast.sim.link import LinkModel, parse_duration_ms, parse_loss, parse_rate_mbit
 
 __all__ = ["DEFAULT_MAX_QUEUE_BYTES", "DirectionStats", "LinkProxy", "ProxyStats", "parse_link_args"]
 
@@ -241,7 +241,7 @@ class _Connection:
 
 
 class LinkProxy:
-    """An asyncio TCP proxy shaping each direction with its own :class:`sim.link.LinkModel`.
+    """An asyncio TCP proxy shaping each direction with its own :class:`quadcast.sim.link.LinkModel`.
 
     ``up`` shapes client -> target, ``down`` target -> client. ``listen_port=0`` picks a free port (see
     :attr:`port`). Use ``await start()`` / ``await close()`` or ``async with``. :attr:`stats` counts messages and

@@ -13,15 +13,15 @@ from typing import Callable
 
 import numpy as np
 
-from client.method import MethodClient
-from client.video import VideoError
-from protocol.errors import ProtocolError
-from protocol.frame import FramePayload
-from render.camera import Pose
-from server.method import MethodServer
-from server.prediction import PosePredictor
-from sim.link import LinkModel
-from sim.traces import Trace
+from quadcast.client.method import MethodClient
+from quadcast.codec.decoder import VideoError
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.frame import FramePayload
+from quadcast.render.camera import Pose
+from quadcast.server.method import MethodServer
+from quadcast.protocol.prediction import PosePredictor
+from quadcast.sim.link import LinkModel
+from quadcast.render.traces import Trace
 
 POSE_MESSAGE_BYTES = 76       # a PoseUpdate on the wire (see protocol/messages.py)
 REQUEST_MESSAGE_BYTES = 16

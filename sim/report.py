@@ -11,7 +11,7 @@ them when present (see :data:`CORE_COLUMNS`):
 ``mbps``               downlink data rate for this frame, Mbit/s
 ``bytes_video``        encoded colour (H.264 atlas) bytes
 ``bytes_geometry``     encoded geometry (quad blob) bytes
-``flip`` ``ssim``      image quality vs ground truth (:mod:`sim.metrics`)
+``flip`` ``ssim``      image quality vs ground truth (:mod:`quadcast.sim.metrics`)
 ``psnr``               dB
 ``pose_error_cm``      distance between rendered and displayed pose, cm
 ``pose_error_deg``     angle between rendered and displayed pose, degrees

@@ -4,17 +4,17 @@ import pytest
 
 @pytest.fixture(scope="session")
 def ctx():
-    from render.gl import gl_context
+    from quadcast.render.gl import gl_context
     return gl_context()
 
 
 @pytest.fixture(scope="session")
 def courtyard():
-    from render.scene import load_scene
+    from quadcast.render.scene import load_scene
     return load_scene("builtin:courtyard")
 
 
 @pytest.fixture(scope="session")
 def courtyard_renderer(ctx, courtyard):
-    from render.renderer import DeferredRenderer
+    from quadcast.render.renderer import DeferredRenderer
     return DeferredRenderer(courtyard, ctx)

@@ -8,13 +8,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 from skimage.metrics import peak_signal_noise_ratio
 
-from client.baselines import ATWClient, MeshWarpClient
-from client.video import AtlasDecoder, VideoError
-from protocol.depth import decode_depth, encode_depth
-from protocol.errors import ProtocolError
-from protocol.frame import Method, decode_frame_payload, encode_frame_payload
-from render.camera import Camera, Pose
-from server.baselines import ATWServer, MeshWarpServer
+from quadcast.client.baselines import ATWClient, MeshWarpClient
+from quadcast.codec.decoder import AtlasDecoder, VideoError
+from quadcast.protocol.depth import decode_depth, encode_depth
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.frame import Method, decode_frame_payload, encode_frame_payload
+from quadcast.render.camera import Camera, Pose
+from quadcast.server.baselines import ATWServer, MeshWarpServer
 
 W, H = 160, 90
 T = 0.0

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from render.camera import Camera, Frustum, Pose, gl_matrix, parse_size
+from quadcast.render.camera import Camera, Frustum, Pose, gl_matrix, parse_size
 
 
 def test_identity_pose_view_matrix_is_identity():

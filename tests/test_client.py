@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio
 
-from client.quasar import QuasarClient
-from client.stereo import StereoFrame, stereo_pair
-from client.video import VideoError
-from protocol.errors import ProtocolError
-from protocol.frame import FramePayload, Method, decode_frame_payload, encode_frame_payload
-from protocol.quads import BLOB_VERSION, HEADER_STRUCT, LAYER_STRUCT
-from render.camera import Camera, Pose
-from server.quasar import QuasarServer, QuasarSettings
-from server.video import VideoSettings
-from sim.traces import resolve_trace
+from quadcast.client.quasar import QuasarClient
+from quadcast.client.stereo import StereoFrame, stereo_pair
+from quadcast.codec.decoder import VideoError
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.frame import FramePayload, Method, decode_frame_payload, encode_frame_payload
+from quadcast.protocol.quads import BLOB_VERSION, HEADER_STRUCT, LAYER_STRUCT
+from quadcast.render.camera import Camera, Pose
+from quadcast.server.quasar import QuasarServer, QuasarSettings
+from quadcast.codec.encoder import VideoSettings
+from quadcast.render.traces import resolve_trace
 
 W, H = 160, 96
 
@@ -194,7 +194,7 @@ def test_black_before_any_payload(ctx):
 # ------------------------------------------------------------------------------------------ QuadStream
 
 def test_quadstream_round_trip(courtyard_renderer):
-    from server.quadstream import QuadStreamServer, QuadStreamSettings
+    from quadcast.server.quadstream import QuadStreamServer, QuadStreamSettings
     pose, t = walk_pose(0.5), 0.5
     server = QuadStreamServer(courtyard_renderer, QuadStreamSettings(width=W, height=H))
     client = QuasarClient(W, H, ctx=courtyard_renderer.ctx, method=Method.QUADSTREAM)
@@ -244,7 +244,7 @@ def test_stereo_left_is_the_rendered_eye_and_right_is_synthesized(stereo_client,
 
 
 def test_stereo_mode2_rerenders_exactly_the_masked_pixels_from_the_mesh(stereo_client):
-    from client.stereo import MeshStereo
+    from quadcast.client.stereo import MeshStereo
     client, pose = stereo_client, walk_pose(0.07)
     yoro = client.stereo_frame(pose, "yoro", with_rendered=True)
     mode2 = client.stereo_frame(pose, "rerender", with_rendered=True)
@@ -273,7 +273,7 @@ def test_stereo_both_and_right_dominant(stereo_client):
 
 
 def test_stereo_pair_for_the_baselines(ctx):
-    from client.baselines import ATWClient
+    from quadcast.client.baselines import ATWClient
     atw = ATWClient(W, H, 60.0, ctx=ctx)
     pose = walk_pose(0.0)
     with pytest.raises(ValueError, match="atw client cannot synthesize an eye"):
@@ -284,7 +284,7 @@ def test_stereo_pair_for_the_baselines(ctx):
 
 
 def test_eval_stereo_summary():
-    from sim.evaluate import EvalSpec, run_eval
+    from quadcast.sim.evaluate import EvalSpec, run_eval
     spec = dict(scene="builtin:courtyard", trace="builtin:walk", width=W, height=H, frames=12, every=3)
     s = run_eval(EvalSpec(method="quasar", stereo=True, **spec))
     st = s["stereo"]

@@ -9,8 +9,8 @@ import zstandard
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.depth import BLOCK, LEVELS, decode_depth, encode_depth
-from protocol.errors import ProtocolError
+from quadcast.protocol.depth import BLOCK, LEVELS, decode_depth, encode_depth
+from quadcast.protocol.errors import ProtocolError
 
 
 def scene_depth(h: int = 45, w: int = 70, seed: int = 0) -> np.ndarray:

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from sim.evaluate import EvalSpec, WALLCLOCK_KEYS, run_eval, run_sweep, strip_wallclock
+from quadcast.sim.evaluate import EvalSpec, WALLCLOCK_KEYS, run_eval, run_sweep, strip_wallclock
 
 TINY = dict(scene="builtin:courtyard", trace="builtin:walk", width=160, height=96, frames=12, every=3)
 

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim.link import Delivery, LinkModel, parse_duration_ms, parse_loss, parse_rate_mbit
+from quadcast.sim.link import Delivery, LinkModel, parse_duration_ms, parse_loss, parse_rate_mbit
 
 
 def test_delivery_time_is_delay_plus_serialization():

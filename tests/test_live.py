@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.messages import (PROTOCOL_VERSION, ErrorCode, ErrorMessage, Hello, MessageDecoder, PoseUpdate,
+from quadcast.protocol.messages import (PROTOCOL_VERSION, ErrorCode, ErrorMessage, Hello, MessageDecoder, PoseUpdate,
                                encode_message)
-from server.app import FrameQueue, check_bind
-from sim.live_cli import link_models, parse_hostport
-from sim.live_demo import LISTENING, Child, quadcast_argv
-from sim.traces import Trace
+from quadcast.server.app import FrameQueue, check_bind
+from quadcast.cli.live import link_models, parse_hostport
+from quadcast.cli.demo import LISTENING, Child, quadcast_argv
+from quadcast.render.traces import Trace
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = "320x180"
@@ -365,7 +365,7 @@ def test_each_session_encodes_in_its_own_process_and_killing_it_ends_only_that_s
 # ------------------------------------------------------------------------------------ fast unit checks
 
 def _payload(frame_id: int, reference: bool):
-    from protocol.frame import FramePayload, Method, PayloadType
+    from quadcast.protocol.frame import FramePayload, Method, PayloadType
     return FramePayload(Method.QUASAR, frame_id, PayloadType.REFERENCE if reference else PayloadType.RESIDUAL,
                         0, 0.0, np.zeros(3), np.array([0, 0, 0, 1.0]), b"")
 

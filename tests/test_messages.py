@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.errors import ProtocolError
-from protocol.frame import FramePayload, Method, PayloadType
-from protocol.messages import (
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.frame import FramePayload, Method, PayloadType
+from quadcast.protocol.messages import (
     PROTOCOL_VERSION,
     Bye,
     ErrorCode,

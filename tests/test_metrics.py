@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from sim.metrics import (
+from quadcast.sim.metrics import (
     FLIP_DEFAULT_PPD,
     PSNR_CAP_DB,
     ImageScores,

@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 from scipy.spatial.transform import Rotation
 
-from server.prediction import PosePredictor, prediction_errors
+from quadcast.protocol.prediction import PosePredictor, prediction_errors
 
 AXIS = np.array([0.3, 1.0, -0.2]) / np.linalg.norm([0.3, 1.0, -0.2])
 

@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from protocol.errors import ProtocolError
-from protocol.quads import (
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.quads import (
     BLOB_VERSION,
     HEADER_STRUCT,
     LAYER_STRUCT,

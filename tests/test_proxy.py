@@ -9,9 +9,9 @@ import socket
 
 import pytest
 
-from protocol.messages import Bye, Frame, MessageDecoder, PoseUpdate, encode_message
-from sim.link import LinkModel
-from sim.proxy import LinkProxy, parse_link_args
+from quadcast.protocol.messages import Bye, Frame, MessageDecoder, PoseUpdate, encode_message
+from quadcast.sim.link import LinkModel
+from quadcast.sim.proxy import LinkProxy, parse_link_args
 
 TIMEOUT = 8.0
 

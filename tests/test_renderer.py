@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from render.camera import Camera, Pose
-from render.renderer import DeferredRenderer
-from render.scene import scene_from_dict
+from quadcast.render.camera import Camera, Pose
+from quadcast.render.renderer import DeferredRenderer
+from quadcast.render.scene import scene_from_dict
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +47,7 @@ def test_sky_has_infinite_depth_and_id_zero(plane_renderer):
 
 
 def test_courtyard_frames_are_lit_textured_shadowed_and_deterministic(courtyard_renderer):
-    from sim.traces import resolve_trace
+    from quadcast.render.traces import resolve_trace
     trace = resolve_trace("builtin:walk")
     p, q = trace.pose_at(2.0)
     cam = Camera.perspective(Pose(p, q), 320, 180)

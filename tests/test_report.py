@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from sim.report import (
+from quadcast.sim.report import (
     FrameImages,
     flip_heatmap,
     format_value,

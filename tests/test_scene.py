@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from render.scene import SceneError, load_scene, scene_from_dict
+from quadcast.render.scene import SceneError, load_scene, scene_from_dict
 
 
 def test_builtin_courtyard_has_what_the_card_asks(courtyard):

@@ -5,14 +5,14 @@ import av
 import numpy as np
 import pytest
 
-from protocol.frame import decode_frame_payload
-from protocol.quads import LayerKind, decode_quad_frame
-from render.camera import Camera, Pose
-from render.quadmesh import MeshLayer, MeshView, QuadMesh
-from render.renderer import DeferredRenderer
-from render.scene import scene_from_dict
-from server.quads import QuadGenerator, QuadParams
-from server.quasar import QuasarServer, QuasarSettings
+from quadcast.protocol.frame import decode_frame_payload
+from quadcast.protocol.quads import LayerKind, decode_quad_frame
+from quadcast.render.camera import Camera, Pose
+from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
+from quadcast.render.renderer import DeferredRenderer
+from quadcast.render.scene import scene_from_dict
+from quadcast.server.quads import QuadGenerator, QuadParams
+from quadcast.server.quasar import QuasarServer, QuasarSettings
 
 
 def test_plane_seen_head_on_merges_to_a_handful_of_quads(ctx):
@@ -104,7 +104,7 @@ def test_encode_command_writes_decodable_video_and_stats(tmp_path):
     assert 0 < stats["residual_to_reference_bytes"] < 1
     assert stats["mbps_at_30fps"] > 0
     # Every payload parses and every access unit decodes with PyAV.
-    from client.video import AtlasDecoder
+    from quadcast.codec.decoder import AtlasDecoder
     decoder = AtlasDecoder()
     for i in range(6):
         payload = decode_frame_payload((out / f"frame_{i:05d}.bin").read_bytes())

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from client.stereo import StereoSynthesizer, benchmark_stereo, deferred_draw_fn
-from render.camera import Camera, Pose
-from render.renderer import DeferredRenderer, read_texture
-from render.scene import DirectionalLight, Material, Mesh, Scene, SceneObject, compose_transform
+from quadcast.client.stereo import StereoSynthesizer, benchmark_stereo, deferred_draw_fn
+from quadcast.render.camera import Camera, Pose
+from quadcast.render.renderer import DeferredRenderer, read_texture
+from quadcast.render.scene import DirectionalLight, Material, Mesh, Scene, SceneObject, compose_transform
 
 W, H = 160, 90
 IPD = 0.3
@@ -292,7 +292,7 @@ def test_right_dominant_eye_and_coarse_imbuffer(ctx, renderer, left_camera):
 
 
 def test_courtyard_quality_and_mode2_no_worse(courtyard_renderer):
-    from sim.traces import resolve_trace
+    from quadcast.render.traces import resolve_trace
     p, q = resolve_trace("builtin:walk").pose_at(10.0)
     bench = benchmark_stereo(courtyard_renderer, Camera.perspective(Pose(p, q), W, H), 10.0, repeats=1)
     ssim1 = structural_similarity(bench.synthesized, bench.truth, channel_axis=-1)

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from sim.traces import (
+from quadcast.render.traces import (
     BUILTIN_TRACES,
     Trace,
     TraceError,
@@ -300,7 +300,7 @@ def test_static_and_strafe() -> None:
 
 
 def test_scene_tour_walks_a_circle_inside_the_bounds_at_eye_height():
-    from sim.traces import scene_tour
+    from quadcast.render.traces import scene_tour
     bounds = np.array([[-10.0, 0.0, -6.0], [10.0, 8.0, 6.0]])
     tour = scene_tour(bounds, duration_s=4.0, speed_mps=1.2, eye_height=1.7)
     assert np.allclose(tour.positions[:, 1], 1.7)

@@ -8,8 +8,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from skimage.metrics import peak_signal_noise_ratio
 
-from client.video import AtlasDecoder, VideoError, nal_unit_types
-from server.video import AtlasEncoder, EncodedFrame, VideoSettings
+from quadcast.codec.decoder import AtlasDecoder, VideoError, nal_unit_types
+from quadcast.codec.encoder import AtlasEncoder, EncodedFrame, VideoSettings
 
 WIDTH, HEIGHT = 320, 192
 FRAME_COUNT = 10

@@ -11,23 +11,23 @@ import pytest
 
 pytest.importorskip("aiortc")
 
-from client.video import AtlasDecoder  # noqa: E402
-from protocol.frame import PayloadType, decode_frame_payload  # noqa: E402
-from protocol.messages import (PROTOCOL_VERSION, Bye, Frame, Hello, PoseUpdate, ReferenceRequest,  # noqa: E402
+from quadcast.codec.decoder import AtlasDecoder  # noqa: E402
+from quadcast.protocol.frame import PayloadType, decode_frame_payload  # noqa: E402
+from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, Frame, Hello, PoseUpdate, ReferenceRequest,  # noqa: E402
                                Welcome)
-from protocol.quads import decode_quad_frame  # noqa: E402
-from render.camera import Pose  # noqa: E402
-from sim.webrtc import WebRtcListener, open_webrtc_channel  # noqa: E402
+from quadcast.protocol.quads import decode_quad_frame  # noqa: E402
+from quadcast.render.camera import Pose  # noqa: E402
+from quadcast.transport.webrtc import WebRtcListener, open_webrtc_channel  # noqa: E402
 
 W, H = 160, 90
 
 
 def _payloads(n: int):
     """n QUASAR frames of builtin:walk at W x H (a reference, then residuals)."""
-    from render.renderer import DeferredRenderer
-    from render.scene import load_scene
-    from sim.methods import MethodConfig, make_server
-    from sim.traces import resolve_trace
+    from quadcast.render.renderer import DeferredRenderer
+    from quadcast.render.scene import load_scene
+    from quadcast.methods import MethodConfig, make_server
+    from quadcast.render.traces import resolve_trace
     trace = resolve_trace("builtin:walk")
     server = make_server("quasar", DeferredRenderer(load_scene("builtin:courtyard")),
                          MethodConfig(width=W, height=H, reference_every=10))
@@ -144,7 +144,7 @@ def test_signalling_rejects_bad_requests():
 
 
 def test_live_server_and_client_processes_over_webrtc(tmp_path):
-    from sim.live_demo import LISTENING, Child, quadcast_argv
+    from quadcast.cli.demo import LISTENING, Child, quadcast_argv
     server = Child("server", quadcast_argv("server", "--port", 0, "--transport", "webrtc", "-v"),
                    tmp_path / "server.log")
     try:

@@ -36,10 +36,10 @@ def render_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames
     """Render ground-truth frames along a trace: frame i is the trace pose at sample i*every. Returns PNG paths."""
     from PIL import Image
 
-    from render.camera import Camera, Pose
-    from render.renderer import DeferredRenderer
-    from render.scene import load_scene
-    from sim.traces import resolve_trace
+    from quadcast.render.camera import Camera, Pose
+    from quadcast.render.renderer import DeferredRenderer
+    from quadcast.render.scene import load_scene
+    from quadcast.render.traces import resolve_trace
 
     scene = load_scene(scene_spec)
     trace = resolve_trace(trace_spec)
@@ -83,7 +83,7 @@ def contact_sheet(paths: list[Path], out: Path, columns: int = 5, thumb_width: i
 
 
 def cmd_render(args) -> int:
-    from render.camera import parse_size
+    from quadcast.render.camera import parse_size
     paths = render_trace(args.scene, args.trace, parse_size(args.size), args.frames, args.every, Path(args.out),
                          depth=args.depth, fovy=args.fovy, quiet=args.quiet)
     print(f"wrote {len(paths)} frames and contact_sheet.png to {args.out}")
@@ -97,13 +97,13 @@ def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames
                  quiet: bool = False) -> dict:
     """Run QUASAR's server along a trace (poses at `server_hz`, no network); write every frame's payload, the
     H.264 stream and stats.json. Returns the stats."""
-    from protocol.frame import encode_frame_payload
-    from render.camera import Pose
-    from render.renderer import DeferredRenderer
-    from render.scene import load_scene
-    from server.quasar import QuasarServer, QuasarSettings
-    from server.video import VideoSettings
-    from sim.traces import Trace, resolve_trace
+    from quadcast.protocol.frame import encode_frame_payload
+    from quadcast.render.camera import Pose
+    from quadcast.render.renderer import DeferredRenderer
+    from quadcast.render.scene import load_scene
+    from quadcast.server.quasar import QuasarServer, QuasarSettings
+    from quadcast.codec.encoder import VideoSettings
+    from quadcast.render.traces import Trace, resolve_trace
 
     scene = load_scene(scene_spec)
     trace = trace_spec if isinstance(trace_spec, Trace) else resolve_trace(trace_spec)
@@ -141,7 +141,7 @@ def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames
 
 
 def cmd_encode(args) -> int:
-    from render.camera import parse_size
+    from quadcast.render.camera import parse_size
     stats = encode_trace(args.scene, args.trace, parse_size(args.size), args.frames, args.viewcell, args.every,
                          Path(args.out), layers=args.layers, crf=args.crf, quiet=args.quiet)
     ratio = stats["residual_to_reference_bytes"]
@@ -154,8 +154,8 @@ def cmd_encode(args) -> int:
 # ------------------------------------------------------------------------------------------ predict, eval
 
 def cmd_predict(args) -> int:
-    from server.prediction import prediction_errors
-    from sim.traces import resolve_trace
+    from quadcast.protocol.prediction import prediction_errors
+    from quadcast.render.traces import resolve_trace
     trace = resolve_trace(args.trace)
     errors = prediction_errors(trace.times, trace.positions, trace.quats, args.latency, args.jitter,
                                predict=not args.no_predict, smooth=args.smooth, seed=args.seed)
@@ -164,9 +164,9 @@ def cmd_predict(args) -> int:
 
 
 def _eval_spec(args):
-    from render.camera import parse_size
-    from sim.evaluate import EvalSpec
-    from sim.link import parse_loss, parse_rate_mbit
+    from quadcast.render.camera import parse_size
+    from quadcast.sim.evaluate import EvalSpec
+    from quadcast.sim.link import parse_loss, parse_rate_mbit
     w, h = parse_size(args.size)
     return EvalSpec(scene=args.scene, trace=args.trace, method=args.method, latency_ms=args.latency,
                     jitter_ms=args.jitter, rate_mbit=parse_rate_mbit(args.rate) if args.rate else None,
@@ -176,7 +176,7 @@ def _eval_spec(args):
 
 
 def cmd_eval(args) -> int:
-    from sim.evaluate import format_summary, run_eval, run_sweep
+    from quadcast.sim.evaluate import format_summary, run_eval, run_sweep
     spec = _eval_spec(args)
     out = Path(args.out)
     if args.sweep:
@@ -199,10 +199,10 @@ def cmd_eval(args) -> int:
 def bench_render(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10) -> list[dict]:
     """ms/frame of the deferred renderer (G-buffer + shadows + lighting + colour read-back) along each scene's
     benchmark trace (server.bench.trace_for)."""
-    from render.camera import Camera, Pose
-    from render.renderer import DeferredRenderer
-    from render.scene import SceneError, load_scene
-    from server.bench import trace_for
+    from quadcast.render.camera import Camera, Pose
+    from quadcast.render.renderer import DeferredRenderer
+    from quadcast.render.scene import SceneError, load_scene
+    from quadcast.cli.bench import trace_for
 
     rows = []
     for spec in scenes:
@@ -239,19 +239,19 @@ def bench_render(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
 
 
 def cmd_bench(args) -> int:
-    from render.camera import parse_size
+    from quadcast.render.camera import parse_size
     sizes = [parse_size(s) for s in args.sizes.split(",")]
     scenes = args.scenes.split(",")
     if args.what == "render":
         rows = bench_render(scenes, sizes, args.frames)
     elif args.what == "server":
-        from server.bench import bench_server
+        from quadcast.cli.bench import bench_server
         rows = bench_server(scenes, sizes, args.frames, quiet=args.quiet)
     elif args.what == "client":
-        from client.bench import bench_client
+        from quadcast.cli.bench_client import bench_client
         rows = bench_client(scenes, sizes, args.frames, quiet=args.quiet)
     elif args.what == "stereo":
-        from client.bench import bench_stereo
+        from quadcast.cli.bench_client import bench_stereo
         rows = bench_stereo(scenes, sizes[0], args.frames, quiet=args.quiet)
     else:
         raise ValueError(f"unknown benchmark {args.what!r}")
@@ -264,7 +264,7 @@ def cmd_bench(args) -> int:
 
 def cmd_demo(args) -> int:
     """The live system on the built-in scene: server, link (20±10 ms) and client as three processes on loopback."""
-    from sim.live_demo import run_demo
+    from quadcast.cli.demo import run_demo
     return run_demo(Path(args.out), quiet=args.quiet)
 
 
@@ -342,16 +342,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/demo")
     p.set_defaults(func=cmd_demo)
 
-    from sim.live_cli import add_live_commands
+    from quadcast.cli.live import add_live_commands
     add_live_commands(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from render.gl import GLUnavailableError
-    from render.scene import SceneError
-    from sim.traces import TraceError
+    from quadcast.render.gl import GLUnavailableError
+    from quadcast.render.scene import SceneError
+    from quadcast.render.traces import TraceError
     try:
         return args.func(args)
     except (ValueError, SceneError, TraceError, GLUnavailableError, FileNotFoundError) as exc:

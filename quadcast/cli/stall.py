@@ -1,6 +1,6 @@
 """How long the live server's event loop stalls while a session renders: worker thread vs worker process.
 
-Not a test (it measures wall-clock time). For each ``--worker`` kind it runs a :class:`server.app.LiveServer` in
+Not a test (it measures wall-clock time). For each ``--worker`` kind it runs a :class:`quadcast.server.app.LiveServer` in
 this process with a 10 ms asyncio ticker on the same event loop, connects one ``quadcast client`` (a separate
 process) at ``--size`` for ``--duration`` seconds, and reports the ticker's largest gap (and its 99th percentile)
 while the session ran: the longest time the loop could not read a pose or send a frame.
@@ -37,8 +37,8 @@ class _Frames(logging.Handler):
 
 async def measure(worker: str, size: str, duration: float, scene: str, trace: str) -> dict:
     """Run one session against an in-process server with ``worker``; the ticker's gaps while it ran."""
-    from server.app import LiveServer, ServerConfig
-    from sim.live_demo import Child, quadcast_argv
+    from quadcast.server.app import LiveServer, ServerConfig
+    from quadcast.cli.demo import Child, quadcast_argv
 
     frames = _Frames()
     logging.getLogger("quadcast.server").addHandler(frames)

@@ -4,7 +4,7 @@
 moderngl contexts are current on one thread, so every GL call -- rendering, encoding, decoding into textures --
 goes through :meth:`GLWorker.call` from the asyncio loop, one job at a time in submission order, and the event loop
 (pose I/O) never waits on the GPU. The worker makes its own headless EGL context, so several workers (a server and
-a client in one test process) and a main-thread :func:`render.gl.gl_context` coexist. moderngl holds the GIL during
+a client in one test process) and a main-thread :func:`quadcast.render.gl.gl_context` coexist. moderngl holds the GIL during
 GL calls, though, so a thread still stalls its process's event loop while it renders (up to ~350 ms at 1920x1080
 on llvmpipe): the live client uses it (its pose I/O matters less), the live server uses :class:`ProcessWorker`.
 
@@ -14,8 +14,8 @@ only pickles small requests; a reader thread per worker waits on the pipe and ha
 worker that dies (killed, crashed) fails its pending and later calls with :class:`WorkerDied`; workers are daemon
 processes that also die with their parent (``PR_SET_PDEATHSIG``) or when their pipe closes.
 
-:class:`TcpChannel` is the sans-I/O protocol (:mod:`protocol.messages`) on an asyncio stream: length-prefixed
-messages in, typed messages out, with byte counters. :mod:`sim.webrtc` has the same interface over WebRTC.
+:class:`TcpChannel` is the sans-I/O protocol (:mod:`quadcast.protocol.messages`) on an asyncio stream: length-prefixed
+messages in, typed messages out, with byte counters. :mod:`quadcast.transport.webrtc` has the same interface over WebRTC.
 """
 from __future__ import annotations
 
@@ -34,10 +34,10 @@ from typing import Any, Callable
 
 import moderngl
 
-from protocol.frame import FramePayload
-from protocol.messages import Frame, Message, MessageDecoder, encode_message
-from render.gl import EGL_PACKAGES, REQUIRED_GL, GLUnavailableError
-from server.video import contains_idr
+from quadcast.protocol.frame import FramePayload
+from quadcast.protocol.messages import Frame, Message, MessageDecoder, encode_message
+from quadcast.render.gl import EGL_PACKAGES, REQUIRED_GL, GLUnavailableError
+from quadcast.codec.encoder import contains_idr
 
 __all__ = ["GLWorker", "ProcessWorker", "WorkerError", "WorkerDied", "Channel", "TcpChannel", "open_tcp_channel", "contains_idr", "is_self_contained"]
 
@@ -304,15 +304,15 @@ class ProcessWorker:
 
 def is_self_contained(payload: FramePayload) -> bool:
     """A frame the client can apply whatever it received before: a reference frame whose video is an IDR."""
-    from protocol.frame import PayloadType
+    from quadcast.protocol.frame import PayloadType
     return payload.frame_type == PayloadType.REFERENCE and contains_idr(payload.video)
 
 
 class Channel:
-    """A bidirectional message channel (the interface of :class:`TcpChannel` and :class:`sim.webrtc.WebRtcChannel`).
+    """A bidirectional message channel (the interface of :class:`TcpChannel` and :class:`quadcast.transport.webrtc.WebRtcChannel`).
 
     ``recv()`` returns the next message, or ``None`` once the peer closed; it raises
-    :class:`protocol.errors.ProtocolError` for malformed input. ``send(msg)`` writes one message (waiting while
+    :class:`quadcast.protocol.errors.ProtocolError` for malformed input. ``send(msg)`` writes one message (waiting while
     the transport's buffer is full); ``send_frame(payload)`` sends a :class:`FramePayload`.
     ``bytes_in`` / ``bytes_out`` count what crossed the transport.
     """

@@ -159,7 +159,7 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
         print(f"demo: {s['method']} on {s['trace']} in {s['scene']} at {s['size']}, {s['duration_s']:.1f} s live: "
               f"{s['mbps']:.2f} Mbps on the socket (video {s['mbps_video']:.2f}, geometry {s['mbps_geometry']:.2f}), "
               f"{s['server_frames']} frames received")
-        from sim.report import format_figure as fmt
+        from quadcast.sim.report import format_figure as fmt
         print(f"demo: FLIP {fmt(s['flip'], '.4f')}  SSIM {fmt(s['ssim'], '.4f')}  PSNR {fmt(s['psnr'], '.2f')} dB "
               f"over {s['frames']} scored frames")
         print(f"demo: report -> {client_out / 'report.html'} (summary.json, frames.csv beside it; process logs in "

@@ -1,4 +1,4 @@
-"""The live protocol over WebRTC (aiortc): :class:`WebRtcChannel` has the :class:`sim.live_io.Channel` interface.
+"""The live protocol over WebRTC (aiortc): :class:`WebRtcChannel` has the :class:`quadcast.transport.channel.Channel` interface.
 
 What goes where, on one ``RTCPeerConnection``:
 
@@ -11,7 +11,7 @@ What goes where, on one ``RTCPeerConnection``:
 
 Data channels carry the same length-prefixed wire messages as TCP, split into chunks of at most
 :data:`CHUNK_BYTES` (SCTP message size limits), and are decoded by a capped
-:class:`protocol.messages.MessageDecoder` per channel.
+:class:`quadcast.protocol.messages.MessageDecoder` per channel.
 
 Receiving video: aiortc decodes the track itself and hands out pictures, not access units, so the receiving
 channel pairs each decoded picture (by RTP timestamp) with its ``frames`` entry and **re-encodes it as a
@@ -36,10 +36,10 @@ import struct
 import time
 from typing import Awaitable, Callable
 
-from protocol.errors import ProtocolError
-from protocol.frame import DEFAULT_MAX_FRAME_BYTES, FramePayload, decode_frame_payload, encode_frame_payload
-from protocol.messages import Frame, Message, MessageDecoder, PoseUpdate, encode_message
-from sim.live_io import Channel
+from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.frame import DEFAULT_MAX_FRAME_BYTES, FramePayload, decode_frame_payload, encode_frame_payload
+from quadcast.protocol.messages import Frame, Message, MessageDecoder, PoseUpdate, encode_message
+from quadcast.transport.channel import Channel
 
 __all__ = ["WebRtcChannel", "WebRtcListener", "open_webrtc_channel", "CHUNK_BYTES", "REENCODE_CRF"]
 
@@ -197,7 +197,7 @@ class WebRtcChannel(Channel):
             self._incoming.put_nowait(Frame.from_payload(payload))
 
     def _reencode(self, picture) -> bytes:
-        from server.video import AtlasEncoder, VideoSettings
+        from quadcast.codec.encoder import AtlasEncoder, VideoSettings
         rgb = picture.to_ndarray(format="rgb24")
         h, w = rgb.shape[:2]
         if self._encoder is None or (self._encoder.width, self._encoder.height) != (w, h):

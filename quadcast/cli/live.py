@@ -60,8 +60,8 @@ async def _run_until_signal(main, on_stop=None) -> None:
 # ------------------------------------------------------------------------------------------------ server
 
 def cmd_server(args) -> int:
-    from render.camera import parse_size
-    from server.app import LiveServer, ServerConfig, server_summary_line
+    from quadcast.render.camera import parse_size
+    from quadcast.server.app import LiveServer, ServerConfig, server_summary_line
     _setup_logging(args.verbose)
     max_w, max_h = parse_size(args.max_size)
     cfg = ServerConfig(scene=args.scene, methods=tuple(m.strip() for m in args.method.split(",") if m.strip()),
@@ -91,7 +91,7 @@ def cmd_server(args) -> int:
 
 def format_live_summary(s: dict) -> str:
     """One line of a live run's figures."""
-    from sim.report import format_figure as f
+    from quadcast.sim.report import format_figure as f
     return (f"{s.get('method')} on {s.get('trace')} ({s.get('transport', 'tcp')}, {s.get('size')}): "
             f"{f(s.get('mbps'), '.2f')} Mbps on the socket (video {f(s.get('mbps_video'), '.2f')}, geometry "
             f"{f(s.get('mbps_geometry'), '.2f')})  FLIP {f(s.get('flip'), '.4f')}  SSIM {f(s.get('ssim'), '.4f')}  "
@@ -106,8 +106,8 @@ def format_live_summary(s: dict) -> str:
 def cmd_client(args) -> int:
     from pathlib import Path
 
-    from client.app import ClientConfig, FatalServerError, LiveClient
-    from render.camera import parse_size
+    from quadcast.client.app import ClientConfig, FatalServerError, LiveClient
+    from quadcast.render.camera import parse_size
     _setup_logging(args.verbose)
     host, port = parse_hostport(args.connect)
     w, h = parse_size(args.size)
@@ -143,16 +143,16 @@ def cmd_client(args) -> int:
 # -------------------------------------------------------------------------------------------------- link
 
 def link_models(delay: str, jitter: str, rate: str | None, loss: str, seed: int):
-    """The (up, down) :class:`sim.link.LinkModel` pair of ``quadcast link``: the same shaping both ways, seeds
+    """The (up, down) :class:`quadcast.sim.link.LinkModel` pair of ``quadcast link``: the same shaping both ways, seeds
     ``seed`` (client -> server) and ``seed + 1`` (server -> client)."""
-    from sim.proxy import parse_link_args
+    from quadcast.sim.proxy import parse_link_args
     return (parse_link_args(delay, jitter, rate, loss, seed=seed),
             parse_link_args(delay, jitter, rate, loss, seed=seed + 1))
 
 
 def cmd_link(args) -> int:
-    from server.app import check_bind
-    from sim.proxy import LinkProxy
+    from quadcast.server.app import check_bind
+    from quadcast.sim.proxy import LinkProxy
     _setup_logging(args.verbose)
     to_host, to_port = parse_hostport(args.to)
     check_bind(args.host, "x" if args.public else "")
@@ -179,7 +179,7 @@ def cmd_link(args) -> int:
 
 def add_live_commands(sub) -> None:
     """Add ``server``, ``client`` and ``link`` to ``quadcast``'s subparsers."""
-    from sim.methods import METHODS
+    from quadcast.methods import METHODS
 
     p = sub.add_parser("server", help="live server: stream a method to clients over TCP or WebRTC")
     p.add_argument("--scene", default="builtin:courtyard")

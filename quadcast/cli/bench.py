@@ -6,8 +6,8 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from render.scene import SceneError, load_scene
-from sim.traces import resolve_trace, scene_tour
+from quadcast.render.scene import SceneError, load_scene
+from quadcast.render.traces import resolve_trace, scene_tour
 
 STAGES = ("gbuffers", "quads", "merge", "gather", "zstd", "video")
 
@@ -26,7 +26,7 @@ def trace_for(scene_spec: str, scene=None):
 
 def bench_server(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 20, every: int = 5,
                  viewcell: float = 0.5, crf: float = 23.0, quiet: bool = False) -> list[dict]:
-    from quadcast import encode_trace
+    from quadcast.cli import encode_trace
 
     rows = []
     print(f"{'scene':20s} {'size':>9s} " + " ".join(f"{s:>8s}" for s in STAGES)

@@ -21,15 +21,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from render.camera import Camera, Pose
-from render.scene import Scene, SceneError, load_scene
+from quadcast.render.camera import Camera, Pose
+from quadcast.render.scene import Scene, SceneError, load_scene
 
 CLIENT_STAGES = ("zstd", "video", "quad_update", "mesh", "render")
 
 
 def walk_poses(spec: str, scene: Scene, frames: int, fps: float = 30.0) -> list[tuple[float, Pose]]:
-    """(t, pose) of the scene's benchmark trace (:func:`server.bench.trace_for`) at `fps`, from its start."""
-    from server.bench import trace_for
+    """(t, pose) of the scene's benchmark trace (:func:`quadcast.cli.bench.trace_for`) at `fps`, from its start."""
+    from quadcast.cli.bench import trace_for
     trace = trace_for(spec, scene)
     return [(k / fps, Pose(*trace.pose_at(trace.times[0] + k / fps))) for k in range(frames)]
 
@@ -49,10 +49,10 @@ def bench_client(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
     """Client stage times (mean ms over the frames after the first) and cache size at each size, per scene."""
     from tqdm import tqdm
 
-    from client.quasar import QuasarClient
-    from render.renderer import DeferredRenderer
-    from server.quasar import QuasarServer, QuasarSettings
-    from server.video import VideoSettings
+    from quadcast.client.quasar import QuasarClient
+    from quadcast.render.renderer import DeferredRenderer
+    from quadcast.server.quasar import QuasarServer, QuasarSettings
+    from quadcast.codec.encoder import VideoSettings
 
     if frames < 2:
         raise ValueError(f"bench client: --frames must be >= 2 (the first frame is a warm-up), got {frames}")
@@ -89,12 +89,12 @@ def bench_stereo(scenes: list[str], size: tuple[int, int] = (960, 540), frames: 
     """YORO quality and cost ratio per scene and mode (see the module docstring)."""
     from tqdm import tqdm
 
-    from client.quasar import QuasarClient
-    from client.stereo import StereoSynthesizer, benchmark_stereo
-    from render.renderer import DeferredRenderer
-    from server.quasar import QuasarServer, QuasarSettings
-    from server.video import VideoSettings
-    from sim.metrics import compare
+    from quadcast.client.quasar import QuasarClient
+    from quadcast.client.stereo import StereoSynthesizer, benchmark_stereo
+    from quadcast.render.renderer import DeferredRenderer
+    from quadcast.server.quasar import QuasarServer, QuasarSettings
+    from quadcast.codec.encoder import VideoSettings
+    from quadcast.sim.metrics import compare
 
     if frames < 2:
         raise ValueError(f"bench stereo: --frames must be >= 2 (the first frame is a warm-up), got {frames}")

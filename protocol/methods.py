@@ -1,0 +1,37 @@
+"""The streaming methods by name, and the parameters both halves of a method agree on (sans-I/O, no GL).
+
+A client names its method in :class:`quadcast.protocol.messages.Hello`; :mod:`quadcast.methods` builds the
+server half and the client half of each name.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["METHODS", "STEREO_METHODS", "MethodConfig", "check_method"]
+
+METHODS = ("quasar", "quadstream", "meshwarp", "meshwarp120", "atw")
+"""Every method: QUASAR, the QuadStream-like baseline, MeshWarp (60° or, as meshwarp120, 120° at twice the
+resolution) and ATW."""
+
+STEREO_METHODS = ("quasar", "quadstream")
+"""Methods whose client keeps the depth of what it shows (a quad mesh), so it can synthesize the second eye."""
+
+
+@dataclass(frozen=True)
+class MethodConfig:
+    """What a method's server and client are built with."""
+
+    width: int = 960
+    height: int = 540
+    fovy_deg: float = 60.0
+    viewcell_radius: float = 0.5   # metres (QuadStream: half the side of its box viewcell)
+    reference_every: int = 5
+    layers: int = 4
+    crf: float = 23.0
+
+
+def check_method(name: str, option: str = "method") -> str:
+    """``name`` if it is a method, else ValueError naming the methods."""
+    if name not in METHODS:
+        raise ValueError(f"{option}: unknown method {name!r}; methods are {', '.join(METHODS)}")
+    return name
