@@ -7,10 +7,14 @@ RUN apt-get update \
     && rm -rf /var/lib/apt/lists/*
 
 WORKDIR /app
-COPY pyproject.toml README.md quadcast.py ./
-COPY render render
-COPY server server
+COPY pyproject.toml README.md ./
+# quadcast/ holds the CLI and a symlink per layer folder (quadcast/server -> ../server, ...).
+COPY quadcast quadcast
 COPY protocol protocol
+COPY codec codec
+COPY render render
+COPY transport transport
+COPY server server
 COPY client client
 COPY sim sim
 RUN pip install --no-cache-dir .

@@ -30,7 +30,9 @@ system-deps:
 demo: setup
 	$(BIN)/quadcast demo
 
+# The tests, and the import-linter contract in pyproject.toml (a layer that imports one above it fails).
 test: setup
+	$(BIN)/lint-imports
 	$(BIN)/python -m pytest
 
 # Speed and size figures (not tests): renderer, server pipeline, client stages, YORO stereo.

@@ -13,10 +13,9 @@ ground truth for those frames and writes the same ``summary.json`` / ``frames.cs
 synthesized with YORO (mode ``"yoro"``). Recorded frames keep both eyes (``frames/left_*.png``,
 ``frames/right_*.png``), the right eye's pose and the frame's cost ratio (the right eye also rendered from the
 mesh, as ``quadcast eval --stereo`` does), and the summary gets ``stereo`` = {ssim, psnr, flip, cost_ratio} of the
-synthesized right eye against the ground-truth right eye, scored by :func:`quadcast.sim.evaluate.evaluate_recording` with
-the same code as ``quadcast eval --stereo``. The head-pose image is still recorded and scored for the main figures.
+synthesized right eye against the ground-truth right eye, scored with the same code as ``quadcast eval --stereo``. The head-pose image is still recorded and scored for the main figures.
 
-The GL work runs on a :class:`quadcast.transport.channel.GLWorker` *thread*: moderngl holds the GIL during GL calls, so the
+The GL work runs on a :class:`quadcast.render.worker.GLWorker` *thread*: moderngl holds the GIL during GL calls, so the
 client's event loop (pose sending, frame receiving) can stall while a frame renders. The client's pose I/O matters
 less than the server's (which uses a worker process per session); poses are stamped with the client's clock when
 sent, so a late pose is late, not wrong.
@@ -37,27 +36,25 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
 
 from quadcast.codec.decoder import VideoError
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.frame import FramePayload, PayloadType
+from quadcast.protocol.frame import FramePayload, residual_to_reference_bytes
 from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
-                               ReferenceRequest, Welcome)
+                                        ReferenceRequest, Welcome)
+from quadcast.protocol.methods import METHODS, STEREO_METHODS, MethodConfig
+from quadcast.protocol.session import ClientSession, RequestReference
 from quadcast.render.camera import Pose
-from quadcast.transport.channel import Channel, GLWorker, is_self_contained, open_tcp_channel
-from quadcast.methods import METHODS, MethodConfig
 from quadcast.render.traces import resolve_trace
+from quadcast.render.worker import GLWorker
+from quadcast.transport.channel import Channel, open_tcp_channel
 
-__all__ = ["ClientConfig", "ClientTotals", "LiveClient", "FatalServerError", "STEREO_METHODS"]
+__all__ = ["ClientConfig", "ClientTotals", "LiveClient", "FatalServerError"]
 
 log = logging.getLogger("quadcast.client")
 
 MAX_INBOX = 32
 """Frames received and not yet applied; past this the client drops them and asks for a reference."""
-
-STEREO_METHODS = ("quasar", "quadstream")
-"""Methods whose client keeps the depth of what it shows (a quad mesh), so it can synthesize the second eye."""
 
 FATAL_CODES = (ErrorCode.UNSUPPORTED_VERSION, ErrorCode.UNKNOWN_METHOD, ErrorCode.BAD_REQUEST,
                ErrorCode.UNAUTHORIZED)
@@ -115,31 +112,29 @@ class ClientConfig:
 
 @dataclass
 class ClientTotals:
-    """What happened during a run (goes into recording.json and the summary)."""
+    """What happened during a run besides the session core's counters (goes into recording.json and the summary)."""
 
     duration_s: float = 0.0
     bytes_socket: int = 0
     bytes_video: int = 0
     bytes_geometry: int = 0
-    frames_received: int = 0
-    frames_applied: int = 0
-    frames_rejected: int = 0
-    frames_skipped: int = 0      # dependent frames ignored while waiting for a self-contained one
-    frames_lost: int = 0         # gaps in the server's frame ids
-    reference_requests: int = 0
     connections: int = 0
     reconnects: int = 0
     display_frames: int = 0
     recorded_frames: int = 0
-    server_types: list = field(default_factory=list)   # per applied frame: (type, bytes)
+    server_types: list = field(default_factory=list)   # per applied frame: (FrameType, bytes)
 
 
 class LiveClient:
     """See the module docstring. ``await client.run()`` streams and records (returns the run's totals);
-    ``client.score()`` then writes the summary."""
+    :func:`quadcast.sim.evaluate.evaluate_recording` then scores the recording."""
 
-    def __init__(self, config: ClientConfig) -> None:
+    def __init__(self, config: ClientConfig, make_client) -> None:
+        """``make_client(method, MethodConfig, ctx)`` builds the method's client half
+        (:func:`quadcast.methods.make_client`)."""
         self.cfg = config
+        self.make_client = make_client
+        self.session = ClientSession(config.reference_timeout)
         self.trace = resolve_trace(config.trace)
         if config.start >= self.trace.duration:
             raise ValueError(f"--start {config.start:g} s is past the end of trace {config.trace!r} "
@@ -152,11 +147,6 @@ class LiveClient:
         self.method_client = None
         self.channel: Channel | None = None
         self.inbox: collections.deque[FramePayload] = collections.deque()
-        self.awaiting_idr = True
-        self.last_request = -1e9
-        self._received_at_request = 0
-        self._processed = 0          # frames taken from the inbox so far
-        self.last_frame_id: int | None = None
         self.newest: FramePayload | None = None
         self.t0: float | None = None
         self.finished = asyncio.Event()
@@ -225,8 +215,7 @@ class LiveClient:
         channel: Channel | None = first
         while channel is not None:
             self.channel = channel
-            self.awaiting_idr = True
-            self.last_frame_id = None
+            self.session.connected(asyncio.get_running_loop().time())
             senders = [asyncio.create_task(self._send_poses(channel)), asyncio.create_task(self._receive(channel))]
             stop = asyncio.create_task(self.finished.wait())
             try:
@@ -290,65 +279,50 @@ class LiveClient:
             if not isinstance(msg, Frame):
                 log.warning("unexpected %s from the server", type(msg).__name__)
                 return
+            now = asyncio.get_running_loop().time()
             try:
                 payload = msg.decode(self.cfg.max_message_bytes)
             except ProtocolError as exc:
-                self.totals.frames_rejected += 1
-                self.awaiting_idr = True
                 log.warning("bad frame: %s", exc)
+                self.session.frames_dropped(now, 1, f"bad frame: {exc}")
                 continue
-            self.totals.frames_received += 1
             self.totals.bytes_video += len(payload.video)
             self.totals.bytes_geometry += len(payload.geometry)
-            if self.last_frame_id is not None and payload.frame_id > self.last_frame_id + 1:
-                self.totals.frames_lost += payload.frame_id - self.last_frame_id - 1
-            self.last_frame_id = payload.frame_id
             self.inbox.append(payload)
             if len(self.inbox) > MAX_INBOX:
-                self.totals.frames_skipped += len(self.inbox)
+                self.session.frames_dropped(now, len(self.inbox), "receive queue overflowed")
                 self.inbox.clear()
-                self.awaiting_idr = True
 
-    async def _request_reference(self, reason: str) -> None:
-        loop = asyncio.get_running_loop()
+    async def _request_reference(self, decision: RequestReference | None) -> None:
         channel = self.channel
-        if channel is None or loop.time() - self.last_request < self.cfg.reference_timeout:
+        if decision is None or channel is None:
             return
-        self.last_request = loop.time()
-        self._received_at_request = self._processed
         try:
-            await channel.send(ReferenceRequest(reason))
-            self.totals.reference_requests += 1
-            print(f"client: reference requested at t={self.now_t():.2f} s ({reason})", flush=True)
+            await channel.send(ReferenceRequest(decision.reason))
+            print(f"client: reference requested at t={self.now_t():.2f} s ({decision.reason})", flush=True)
         except (ConnectionError, OSError):
             pass
 
     # ------------------------------------------------------------------ GL side
 
     def _setup(self) -> None:
-        from quadcast.methods import make_client
         cfg = self.cfg
-        self.method_client = make_client(cfg.method, MethodConfig(width=cfg.width, height=cfg.height,
+        self.method_client = self.make_client(cfg.method, MethodConfig(width=cfg.width, height=cfg.height,
                                                                   fovy_deg=cfg.fovy_deg), self.worker.ctx)
         if cfg.stereo and not hasattr(self.method_client, "stereo_frame"):
             raise ValueError(f"--stereo: the {cfg.method} client cannot synthesize an eye")
 
-    def _apply_and_render(self, batch: list[FramePayload], pose: Pose, awaiting_idr: bool, record: bool = False):
-        """On the GL thread: apply the frames in order, render the newest state at ``pose`` (and, with stereo,
-        both eyes; ``record``: also the right eye rendered, for the cost ratio)."""
-        applied, rejected, skipped, reasons = [], 0, 0, []
-        for payload in batch:
-            if awaiting_idr and not is_self_contained(payload):
-                skipped += 1
-                continue
-            try:
-                self.method_client.receive(payload)
-            except (ProtocolError, VideoError) as exc:
-                rejected += 1
-                reasons.append(str(exc))
-                continue
-            awaiting_idr = False
-            applied.append(payload)
+    def _apply(self, payload: FramePayload) -> tuple[bool, bool, str]:
+        """On the GL thread: apply one frame; (applied, the method client needs a reference, why not applied)."""
+        try:
+            self.method_client.receive(payload)
+            return True, self.method_client.needs_reference, ""
+        except (ProtocolError, VideoError) as exc:
+            return False, self.method_client.needs_reference, str(exc)
+
+    def _render(self, pose: Pose, record: bool = False):
+        """On the GL thread: the newest state at ``pose`` (and, with stereo, both eyes; ``record``: also the right
+        eye rendered, for the cost ratio)."""
         t0 = time.perf_counter()
         image = self.method_client.render(pose)
         stats = getattr(self.method_client, "stats", {}) or {}
@@ -360,8 +334,7 @@ class LiveClient:
             stereo = {"left": frame.left, "right": frame.right, "position": frame.other_camera.pose.position.tolist(),
                       "quat": frame.other_camera.pose.quat.tolist(), "cost_ratio": frame.cost_ratio}
             ms.update({f"stereo_{k}": v for k, v in frame.ms.items()})
-        return (image, applied, rejected, skipped, reasons, awaiting_idr, self.method_client.needs_reference, ms,
-                stereo)
+        return image, ms, stereo
 
     # ------------------------------------------------------------------ display
 
@@ -378,34 +351,27 @@ class LiveClient:
             t = self.now_t()
             if t - self.cfg.start >= self.duration:
                 break
-            batch = list(self.inbox)
-            self.inbox.clear()
-            self._processed += len(batch)
+            tot, session = self.totals, self.session
+            while self.inbox:
+                payload = self.inbox.popleft()
+                now = loop.time()
+                if not session.frame_received(now, payload.frame_id, payload.self_contained):
+                    await self._request_reference(session.tick(now))
+                    continue
+                applied, needs_reference, reason = await self.worker.call(self._apply, payload)
+                if applied:
+                    self.newest = payload
+                    tot.server_types.append((payload.frame_type, len(payload.video) + len(payload.geometry)))
+                    if not first_applied:
+                        first_applied = True
+                        print(f"client: first frame applied at t={t:.2f} s", flush=True)
+                else:
+                    log.info("rejected frame %d: %s", payload.frame_id, reason)
+                await self._request_reference(session.frame_processed(loop.time(), applied, needs_reference, reason))
+            await self._request_reference(session.tick(loop.time()))
             pose = self.pose_at(t)
             record = index % self.cfg.record_every == 0
-            (image, applied, rejected, skipped, reasons, self.awaiting_idr, needs_ref,
-             ms, stereo) = await self.worker.call(self._apply_and_render, batch, pose, self.awaiting_idr, record)
-            tot = self.totals
-            tot.frames_applied += len(applied)
-            tot.frames_rejected += rejected
-            tot.frames_skipped += skipped
-            for p in applied:
-                tot.server_types.append(("reference" if p.frame_type == PayloadType.REFERENCE else "residual",
-                                         len(p.video) + len(p.geometry)))
-            if applied:
-                self.newest = applied[-1]
-                if not first_applied:
-                    first_applied = True
-                    print(f"client: first frame applied at t={t:.2f} s", flush=True)
-            if reasons:
-                log.info("rejected %d frame(s): %s", rejected, "; ".join(reasons[:3]))
-            # Ask for a reference on evidence (a frame was rejected or skipped), and again while frames keep
-            # coming that the client cannot use; never merely because nothing has arrived yet.
-            if (rejected or skipped) or ((needs_ref or self.awaiting_idr)
-                                         and self._processed > self._received_at_request):
-                await self._request_reference(reasons[0] if reasons else
-                                              "waiting for a self-contained frame" if self.awaiting_idr
-                                              else "reference missing")
+            image, ms, stereo = await self.worker.call(self._render, pose, record)
             tot.display_frames += 1
             if self.newest is not None and record:
                 name = f"frames/display_{index:05d}.png"
@@ -471,29 +437,22 @@ class LiveClient:
                     log.exception("closing the method client failed")
             await asyncio.get_running_loop().run_in_executor(None, self.worker.close)
         self._write_recording()
-        return asdict(self.totals)
-
-    def score(self) -> dict:
-        """Ground truth for the recorded frames, FLIP/SSIM/PSNR, summary.json + frames.csv + report.html (call
-        after :meth:`run`, outside the event loop: it renders on the calling thread's GL context)."""
-        from quadcast.sim.evaluate import evaluate_recording
-        return evaluate_recording(self.out)
+        return {**asdict(self.totals), **asdict(self.session.counters)}
 
     def _write_recording(self) -> None:
         cfg, tot = self.cfg, self.totals
         rate = (lambda b: b * 8 / tot.duration_s / 1e6) if tot.duration_s > 0 else (lambda b: None)  # noqa: E731
-        ref = [b for k, b in tot.server_types if k == "reference"]
-        res = [b for k, b in tot.server_types if k == "residual"]
+        c = self.session.counters
         summary = {
             "trace": cfg.trace, "start_s": cfg.start, "duration_s": tot.duration_s, "transport": cfg.transport,
             "display_frames": tot.display_frames, "every": cfg.record_every,
             "mbps": rate(tot.bytes_socket), "mbps_video": rate(tot.bytes_video),
-            "mbps_geometry": rate(tot.bytes_geometry), "server_frames": tot.frames_received,
-            "frames_applied": tot.frames_applied, "frames_lost": tot.frames_lost,
-            "frames_rejected": tot.frames_rejected, "frames_skipped": tot.frames_skipped,
-            "reference_requests": tot.reference_requests, "connections": tot.connections,
+            "mbps_geometry": rate(tot.bytes_geometry), "server_frames": c.frames_received,
+            "frames_applied": c.frames_applied, "frames_lost": c.frames_lost,
+            "frames_rejected": c.frames_rejected, "frames_skipped": c.frames_skipped,
+            "reference_requests": c.reference_requests, "connections": tot.connections,
             "reconnects": tot.reconnects, "bytes_socket": tot.bytes_socket,
-            "residual_to_reference_bytes": float(np.mean(res) / np.mean(ref)) if ref and res else None,
+            "residual_to_reference_bytes": residual_to_reference_bytes(tot.server_types),
             **cfg.labels,
         }
         rec = {"method": cfg.method, "scene": cfg.scene, "trace": cfg.trace, "size": [cfg.width, cfg.height],

@@ -237,7 +237,7 @@ class MeshWarpClient(_BaselineClient):
         self._frame_tex.use(0)
         self._depth_tex.use(1)
         set_uniforms(self._mesh_prog, u_frame=0, u_depth=1, u_mvp=gl_matrix(mvp),
-                     u_inv_k=_mat3(np.linalg.inv(_k(self.frame_frustum()))))
+                     u_extents=self.frame_frustum().unit_extents)
         self._grid_vao(self.frame.width, self.frame.height).render(moderngl.TRIANGLES)
         ctx.disable(moderngl.DEPTH_TEST)
 

@@ -4,8 +4,10 @@
 // sit on the image border (not the pixel centres) so the mesh spans the whole server frustum. Sky pixels become
 // points at infinity (w = 0) in their viewing direction: no parallax, and triangles joining geometry to sky
 // stretch towards the horizon. Triangles across depth discontinuities are kept (a connected "rubber sheet").
+#include "camera.glsl"
+
 uniform sampler2D u_depth;  // R32F linear view depth in metres, 0 = sky
-uniform mat3 u_inv_k;       // server NDC (x, y, 1) -> server view-space direction with z = -1
+uniform vec4 u_extents;     // the server camera's frustum l, r, b, t at distance 1
 uniform mat4 u_mvp;         // display projection * display view * server camera-to-world
 
 out vec2 v_uv;
@@ -17,9 +19,9 @@ void main() {
     vec2 uv = (vec2(px) + 0.5) / vec2(size);
     if (px.x == 0) uv.x = 0.0; else if (px.x == size.x - 1) uv.x = 1.0;
     if (px.y == 0) uv.y = 0.0; else if (px.y == size.y - 1) uv.y = 1.0;
-    vec3 dir = u_inv_k * vec3(uv * 2.0 - 1.0, 1.0);
+    vec3 dir = view_ray(u_extents, 1.0, uv);  // server view space, z = -1
     v_uv = uv;
-    if (z > 0.0) {
+    if (!is_sky_depth(z)) {
         gl_Position = u_mvp * vec4(dir * z, 1.0);
     } else {
         gl_Position = u_mvp * vec4(dir, 0.0);

@@ -11,7 +11,7 @@ from quadcast.client.method import MethodClient
 from quadcast.client.stereo import STEREO_MODES, MeshStereo, StereoFrame
 from quadcast.codec.decoder import AtlasDecoder, VideoError
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.frame import FramePayload, Method, PayloadType
+from quadcast.protocol.frame import FramePayload, Method
 from quadcast.protocol.quads import FrameType, LayerKind, QuadFrame, decode_quad_frame
 from quadcast.render.camera import DEFAULT_IPD_M, Camera, Frustum, Pose
 from quadcast.render.gl import gl_context
@@ -63,7 +63,7 @@ class QuasarClient(MethodClient):
         frame = decode_quad_frame(payload.geometry, max_quads=self.max_quads)
         ms["zstd"] = (time.perf_counter() - t0) * 1e3
         is_reference = frame.frame_type == FrameType.REFERENCE
-        if (frame.frame_type == FrameType.RESIDUAL) != (payload.frame_type == PayloadType.RESIDUAL):
+        if frame.frame_type != payload.frame_type:
             raise ProtocolError("frame payload and quad blob disagree on the frame type")
         if not is_reference and (frame.reference_id != self.reference_id or self.cache is None):
             self._needs_reference = True

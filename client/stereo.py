@@ -34,7 +34,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, TypeVar
 
 import moderngl
 import numpy as np
@@ -42,15 +42,24 @@ import numpy as np
 from quadcast.render.camera import DEFAULT_IPD_M, Camera, Pose, gl_matrix
 from quadcast.render.gl import RENDER_DIR, compute, program, set_uniforms
 from quadcast.render.quadmesh import MeshView, QuadMesh
-from quadcast.render.renderer import GBuffer, read_texture
+from quadcast.render.renderer import CullFn, GBuffer, read_texture
 
 HERE = Path(__file__).resolve().parent
+T = TypeVar("T")
 
-CullFn = Callable[[moderngl.Texture], None]
 DrawFn = Callable[[Camera, CullFn], moderngl.Texture]
-"""draw_fn(camera, cull) renders `camera`'s view into a framebuffer whose depth attachment it has passed to
-`cull` after any clear (cull fills it and restores the bound framebuffer), draws with depth test LESS (so only
-pixels left at depth 1 are shaded), and returns the colour texture (RGBA8, the synthesizer's size)."""
+"""draw_fn(camera, cull) renders `camera`'s view with `cull` as the draw's cull step (`CullFn`: the shared draw
+routines `DeferredRenderer.geometry_pass` and `MeshView.render` take it as `cull=`), so only the pixels to
+re-render are shaded, and returns the colour texture (RGBA8, the synthesizer's size)."""
+
+
+def _timed(ctx: moderngl.Context, fn: Callable[[], T]) -> tuple[T, float]:
+    """`fn()` and how long it took in milliseconds, the GPU finished before and after."""
+    ctx.finish()
+    t0 = time.perf_counter()
+    out = fn()
+    ctx.finish()
+    return out, (time.perf_counter() - t0) * 1e3
 
 
 @dataclass
@@ -174,7 +183,7 @@ class StereoSynthesizer:
         matrix = other.projection_matrix() @ other.view_matrix() @ camera.pose.camera_to_world()
         depth.use(1)
         set_uniforms(self.reproject_cs, u_depth=1, u_depth_is_position=is_position, u_reproject=gl_matrix(matrix),
-                     u_extents=(f.left / f.near, f.right / f.near, f.bottom / f.near, f.top / f.near))
+                     u_extents=f.unit_extents)
         self.targets.bind_to_image(0, read=False, write=True)
         self.reproject_cs.run((self.intermediate_width + 7) // 8, (self.height + 7) // 8)
         self.ctx.memory_barrier()
@@ -191,8 +200,7 @@ class StereoSynthesizer:
     def patch(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera) -> StereoResult:
         """Algorithm 3, `imbuffer` + the dominant eye's colour and depth -> the other eye's colour and mask."""
         is_position = self._check_inputs(color, depth, camera)
-        f = camera.frustum
-        focal_px = self.width * f.near / (f.right - f.left)
+        focal_px = camera.focal_px[0]
         color.use(0)
         depth.use(1)
         set_uniforms(self.patch_cs, u_color=0, u_depth=1, u_depth_is_position=is_position,
@@ -272,23 +280,16 @@ class StereoSynthesizer:
 
 
 def deferred_draw_fn(renderer, t: float = 0.0) -> DrawFn:
-    """A `DrawFn` for `quadcast.render.renderer.DeferredRenderer` at time `t`: geometry pass into its own G-buffer over
-    the culling depth (culled pixels stay empty, so the lighting pass treats them as cheap sky), then the
-    lighting pass. The G-buffer last drawn is `draw_fn.gbuffer`."""
+    """A `DrawFn` for `quadcast.render.renderer.DeferredRenderer` at time `t`: its culled geometry pass into a
+    G-buffer of this draw function's own (culled pixels stay empty, so the lighting pass treats them as cheap sky),
+    then the lighting pass. The G-buffer last drawn is `draw_fn.gbuffer`."""
     targets: dict[tuple[int, int], GBuffer] = {}
 
     def draw(camera: Camera, cull: CullFn) -> moderngl.Texture:
         key = (camera.width, camera.height)
         if key not in targets:
             targets[key] = GBuffer(renderer.ctx, *key)
-        gb = targets[key]
-        gb.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0)
-        cull(gb.depth)
-        gb.geometry_fbo.use()
-        renderer.ctx.enable(moderngl.DEPTH_TEST)
-        renderer.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-        renderer.draw_geometry(camera, t)
-        gb.camera = camera
+        gb = renderer.geometry_pass(camera, t, target=targets[key], cull=cull)
         renderer.lighting_pass(gb, t)
         draw.gbuffer = gb
         return gb.color
@@ -320,23 +321,15 @@ def benchmark_stereo(renderer, camera: Camera, t: float = 0.0, synthesizer: Ster
     left_pose, right_pose = camera.pose.stereo_eyes(synth.ipd)
     dominant = camera.with_pose(left_pose if synth.dominant == "left" else right_pose)
     draw = deferred_draw_fn(renderer, t)
-
-    def timed(fn):
-        ctx.finish()
-        t0 = time.perf_counter()
-        out = fn()
-        ctx.finish()
-        return out, (time.perf_counter() - t0) * 1e3
-
     synth_ms, rerender_ms, render_ms = [], [], []
     for _ in range(repeats + 1):
         gb = renderer.gbuffer(dominant, t)
         left = gb.read_color()
-        result, ms1 = timed(lambda: synth.synthesize_gbuffer(gb))
+        result, ms1 = _timed(ctx, lambda: synth.synthesize_gbuffer(gb))
         synthesized = result.read_color()
-        merged, ms2 = timed(lambda: synth.rerender_disoccluded(draw, result))
+        merged, ms2 = _timed(ctx, lambda: synth.rerender_disoccluded(draw, result))
         rerendered = merged.read_color()
-        _, ms3 = timed(lambda: renderer.gbuffer(result.camera, t))
+        _, ms3 = _timed(ctx, lambda: renderer.gbuffer(result.camera, t))
         synth_ms.append(ms1), rerender_ms.append(ms2), render_ms.append(ms3)
     truth = renderer.gbuffer(result.camera, t).read_color()
     fractions = tuple(float(m.mean()) for m in result.read_masks())
@@ -392,7 +385,7 @@ class StereoFrame:
 class MeshStereo:
     """Stereo for a client that shows a `quadcast.render.quadmesh.QuadMesh`: the dominant eye is drawn into the client's
     `MeshView`, whose colour and view-position targets feed the `StereoSynthesizer`; mode 2 re-renders the masked
-    pixels of the other eye from the same mesh into a second `MeshView` (`MeshView.render_masked`)."""
+    pixels of the other eye from the same mesh into a second `MeshView` (`MeshView.render` with `cull=`)."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int, ipd: float = DEFAULT_IPD_M,
                  dominant: str = "left", **synth_options):
@@ -423,30 +416,23 @@ class MeshStereo:
         dominant_cam, other_cam = self.eye_cameras(head)
         ms = {"dominant": 0.0, "synthesize": 0.0, "rerender": 0.0}
 
-        def timed(key, fn):
-            ctx.finish()
-            t0 = time.perf_counter()
-            out = fn()
-            ctx.finish()
-            ms[key] = (time.perf_counter() - t0) * 1e3
-            return out
-
-        timed("dominant", lambda: view.render(mesh, dominant_cam, atlas))
+        _, ms["dominant"] = _timed(ctx, lambda: view.render(mesh, dominant_cam, atlas))
         dominant_img = view.read_color()
         rendered = None
         if with_rendered or mode == "both":
-            timed("other", lambda: self.other_view.render(mesh, other_cam, atlas))
+            _, ms["other"] = _timed(ctx, lambda: self.other_view.render(mesh, other_cam, atlas))
             rendered = self.other_view.read_color()
         fractions, mask = (0.0, 0.0), None
         if mode == "both":
             other_img = rendered
         else:
-            result = timed("synthesize", lambda: self.synth.synthesize(view.color, view.position, dominant_cam))
+            result, ms["synthesize"] = _timed(
+                ctx, lambda: self.synth.synthesize(view.color, view.position, dominant_cam))
             if mode == "rerender":
                 def draw(camera: Camera, cull: CullFn) -> moderngl.Texture:
-                    self.other_view.render_masked(mesh, camera, atlas, cull)
+                    self.other_view.render(mesh, camera, atlas, cull=cull)
                     return self.other_view.color
-                result = timed("rerender", lambda: self.synth.rerender_disoccluded(draw, result))
+                result, ms["rerender"] = _timed(ctx, lambda: self.synth.rerender_disoccluded(draw, result))
             other_img = result.read_color()
             disoccluded, mask = result.read_masks()
             fractions = (float(disoccluded.mean()), float(mask.mean()))

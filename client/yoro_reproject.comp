@@ -16,7 +16,7 @@ void main() {
     vec2 uv = (vec2(i) + 0.5) / vec2(size);
     ivec2 src = ivec2(uv * vec2(textureSize(u_depth, 0)));
     float z = source_depth(src);
-    vec3 ray = vec3(mix(u_extents.x, u_extents.y, uv.x), mix(u_extents.z, u_extents.w, uv.y), -1.0);
+    vec3 ray = view_ray(u_extents, 1.0, uv);
     vec4 p = z < SKY_DEPTH ? vec4(ray * z, 1.0) : vec4(ray, 0.0);  // sky: a direction (point at infinity)
     vec4 c = u_reproject * p;
     float x = -1e9;  // behind the other eye: lands nowhere

@@ -19,26 +19,20 @@ access unit, which must carry its SPS and PPS in-band (as those of
 
 from __future__ import annotations
 
-import re
 import time
 from types import TracebackType
 
 import av
 import numpy as np
 
-__all__ = ["VideoError", "AtlasDecoder", "nal_unit_types"]
+from quadcast.codec.nal import NAL_IDR_SLICE, nal_unit_types
 
-_NAL_IDR_SLICE = 5
-_START_CODE_NAL_HEADER = re.compile(rb"\x00\x00\x01(.)", re.DOTALL)
+__all__ = ["VideoError", "AtlasDecoder"]
+
 
 
 class VideoError(ValueError):
     """An H.264 access unit could not be decoded (corrupt, truncated or not H.264)."""
-
-
-def nal_unit_types(access_unit: bytes) -> list[int]:
-    """NAL unit types (0..31) of the start-code-prefixed NAL units in ``access_unit``."""
-    return [header[0] & 0x1F for header in _START_CODE_NAL_HEADER.findall(access_unit)]
 
 
 def _new_codec() -> av.VideoCodecContext:
@@ -110,7 +104,7 @@ class AtlasDecoder:
             raise self._fail(
                 f"not an Annex-B H.264 access unit ({len(data)} bytes, no start code found)"
             )
-        is_idr = _NAL_IDR_SLICE in nal_types
+        is_idr = NAL_IDR_SLICE in nal_types
         if self._needs_keyframe and not is_idr:
             return None
         if (sequence is not None and not is_idr and self._last_sequence is not None

@@ -24,7 +24,6 @@ padded picture would come out of the decoder with a different shape.
 
 from __future__ import annotations
 
-import re
 import time
 from dataclasses import dataclass
 from fractions import Fraction
@@ -34,7 +33,9 @@ import av
 import numpy as np
 from av.video.frame import PictureType
 
-__all__ = ["VideoSettings", "EncodedFrame", "AtlasEncoder", "contains_idr"]
+from quadcast.codec.nal import contains_idr
+
+__all__ = ["VideoSettings", "EncodedFrame", "AtlasEncoder"]
 
 X264_PRESETS = (
     "ultrafast",
@@ -50,8 +51,6 @@ X264_PRESETS = (
 )
 """Preset names libx264 accepts, fastest first."""
 
-_NAL_IDR_SLICE = 5
-_START_CODE_NAL_HEADER = re.compile(rb"\x00\x00\x01(.)", re.DOTALL)
 
 # AVColorSpace / AVColorPrimaries / AVColorTransferCharacteristic / AVColorRange
 # values written to the VUI: BT.601 (SMPTE 170M), limited ("MPEG") range.
@@ -124,14 +123,6 @@ class EncodedFrame:
     keyframe: bool
     frame_index: int
     encode_ms: float
-
-
-def contains_idr(access_unit: bytes) -> bool:
-    """Whether an Annex-B access unit holds an IDR slice NAL unit (type 5)."""
-    return any(
-        header[0] & 0x1F == _NAL_IDR_SLICE
-        for header in _START_CODE_NAL_HEADER.findall(access_unit)
-    )
 
 
 class AtlasEncoder:

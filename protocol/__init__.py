@@ -1,37 +1,9 @@
-"""Sans-I/O wire formats of quadcast (numpy + zstandard only)."""
+"""Sans-I/O protocol of quadcast (numpy, scipy and zstandard only; no sockets, no GL).
 
-from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.quads import (
-    FrameType,
-    LayerKind,
-    QuadFrame,
-    QuadFrameStats,
-    QuadLayer,
-    QuadSet,
-    decode_quad_frame,
-    encode_quad_frame,
-    pack_normals,
-    packed_size_bits_per_quad,
-    quad_frame_stats,
-    unpack_normals,
-)
-
-__all__ = [
-    "FrameType",
-    "LayerKind",
-    "ProtocolError",
-    "QuadFrame",
-    "QuadFrameStats",
-    "QuadLayer",
-    "QuadSet",
-    "decode_quad_frame",
-    "encode_quad_frame",
-    "pack_normals",
-    "packed_size_bits_per_quad",
-    "quad_frame_stats",
-    "unpack_normals",
-]
-
-from quadcast.protocol.frame import FramePayload, Method, PayloadType, decode_frame_payload, encode_frame_payload  # noqa: E402
-
-__all__ += ["FramePayload", "Method", "PayloadType", "decode_frame_payload", "encode_frame_payload"]
+- :mod:`~quadcast.protocol.messages`: the live wire protocol's typed messages and incremental decoder;
+- :mod:`~quadcast.protocol.frame`: one server frame (`FramePayload`) and its header;
+- :mod:`~quadcast.protocol.quads`: 80-bit quads in columnar zstd blobs; :mod:`~quadcast.protocol.depth`: depth maps;
+- :mod:`~quadcast.protocol.methods`: the streaming methods by name;
+- :mod:`~quadcast.protocol.prediction`: head-pose prediction;
+- :mod:`~quadcast.protocol.session`: the session state machines that the replay and the live system both drive.
+"""

@@ -25,6 +25,7 @@ import struct
 import numpy as np
 import zstandard
 
+from quadcast.protocol.compression import decompress_exact
 from quadcast.protocol.errors import ProtocolError
 
 __all__ = ["encode_depth", "decode_depth", "DEPTH_MAGIC", "DEPTH_VERSION", "BLOCK", "LEVELS", "SKY_CODE",
@@ -140,25 +141,8 @@ def decode_depth(blob: bytes, max_pixels: int = DEFAULT_MAX_DEPTH_PIXELS) -> np.
     if width * height > max_pixels:
         raise ProtocolError(f"depth blob: {width}x{height} = {width * height} pixels exceeds the cap of {max_pixels}")
 
-    expected = _body_size(width, height)
-    comp = blob[_HEADER.size:]
-    try:
-        content = zstandard.get_frame_parameters(comp).content_size
-    except zstandard.ZstdError as exc:
-        raise ProtocolError(f"depth blob: bad zstd frame header ({exc})") from None
-    if content != expected:  # also rejects frames without a declared size (a decompression bomb guard)
-        raise ProtocolError(f"depth blob: zstd frame declares {content} bytes, {width}x{height} needs {expected}")
-    try:
-        dobj = zstandard.ZstdDecompressor().decompressobj()
-        body = dobj.decompress(comp)
-        finished = dobj.eof
-        trailing = len(dobj.unused_data)
-    except zstandard.ZstdError as exc:
-        raise ProtocolError(f"depth blob: corrupt zstd data ({exc})") from None
-    if not finished or len(body) != expected:
-        raise ProtocolError(f"depth blob: truncated zstd data ({len(body)} of {expected} bytes decompressed)")
-    if trailing:
-        raise ProtocolError(f"depth blob: {trailing} trailing bytes after the zstd frame")
+    body = decompress_exact(memoryview(blob)[_HEADER.size:], _body_size(width, height),
+                            f"depth blob ({width}x{height})")
 
     hp, wp = _padded(width, height)
     bh, bw = hp // BLOCK, wp // BLOCK

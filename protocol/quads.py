@@ -47,6 +47,7 @@ from typing import Any, NamedTuple, Sequence
 import numpy as np
 import zstandard
 
+from quadcast.protocol.compression import decompress_exact
 from quadcast.protocol.errors import ProtocolError
 
 __all__ = [
@@ -694,41 +695,6 @@ def quad_frame_stats(frame: QuadFrame, level: int = 3) -> QuadFrameStats:
 # --------------------------------------------------------------------------
 
 
-def _decompress_exactly(payload: memoryview, expected: int) -> bytes:
-    """Decompress the single zstd frame in ``payload`` into exactly ``expected`` bytes, never more."""
-    if len(payload) == 0:
-        raise ProtocolError("truncated blob: zstd payload missing after the layer headers")
-    try:
-        declared = zstandard.frame_content_size(payload)
-    except zstandard.ZstdError as exc:
-        raise ProtocolError(f"payload: invalid or truncated zstd frame header ({exc})") from None
-    if declared < 0 or declared == zstandard.CONTENTSIZE_UNKNOWN:
-        raise ProtocolError("payload: zstd frame must declare its content size, it does not")
-    if declared != expected:
-        raise ProtocolError(
-            f"payload: zstd frame declares {declared} bytes, expected {expected} from the layer counts"
-        )
-    window = 1 << max(20, min(27, max(expected - 1, 1).bit_length()))
-    dctx = zstandard.ZstdDecompressor(max_window_size=window)
-    try:
-        if expected == 0:
-            # decompress() returns b"" for a zero-size frame without reading it; check it fully.
-            dobj = dctx.decompressobj()
-            out = dobj.decompress(payload)
-            if not dobj.eof:
-                raise ProtocolError("payload: truncated zstd frame")
-            if dobj.unused_data:
-                raise ProtocolError(f"payload: {len(dobj.unused_data)} trailing bytes after the zstd frame")
-        else:
-            # The output buffer is allocated at the declared (== expected, <= max_bytes) size.
-            out = dctx.decompress(payload, max_output_size=expected, allow_extra_data=False)
-    except zstandard.ZstdError as exc:
-        raise ProtocolError(f"payload: zstd decompression failed ({exc})") from None
-    if len(out) != expected:
-        raise ProtocolError(f"payload: decompressed to {len(out)} bytes, expected {expected}")
-    return out
-
-
 def decode_quad_frame(
     data: bytes | bytearray | memoryview,
     *,
@@ -797,7 +763,7 @@ def decode_quad_frame(
     if expected > max_bytes:
         raise ProtocolError(f"header.payload_size: {expected} bytes exceeds max_bytes {max_bytes}")
 
-    raw = _decompress_exactly(view[layers_end:], expected)
+    raw = decompress_exact(view[layers_end:], expected, "payload")
 
     pos = 0
 

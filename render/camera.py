@@ -7,6 +7,7 @@ Clip space is OpenGL's (z in [-1, 1]); depth-buffer values are in [0, 1].
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -138,6 +139,13 @@ class Frustum:
             [0, 0, -1, 0],
         ])
 
+    @property
+    def unit_extents(self) -> tuple[float, float, float, float]:
+        """(left, right, bottom, top) scaled to the plane at distance 1 (the signed tangents of the angles from the
+        axis to each side): the `extents` that render/camera.glsl's `view_ray` takes with near = 1."""
+        n = self.near
+        return self.left / n, self.right / n, self.bottom / n, self.top / n
+
     def as_array(self) -> np.ndarray:
         return np.array([self.left, self.right, self.bottom, self.top, self.near, self.far])
 
@@ -169,6 +177,13 @@ class Camera:
     def view_matrix(self) -> np.ndarray:
         return self.pose.view_matrix()
 
+    @property
+    def focal_px(self) -> tuple[float, float]:
+        """(fx, fy): the focal length in pixels along x and along y, i.e. pixels per unit of x/z and of y/z.
+        A point at view depth z shifted sideways by d metres moves fx * d / z pixels."""
+        f = self.frustum
+        return self.width * f.near / (f.right - f.left), self.height * f.near / (f.top - f.bottom)
+
     def projection_matrix(self) -> np.ndarray:
         return self.frustum.projection_matrix()
 
@@ -195,6 +210,15 @@ class Camera:
         clip = np.c_[p, np.ones(len(p))] @ self.view_projection().T
         ndc = clip[:, :2] / clip[:, 3:4]
         return np.c_[(ndc[:, 0] + 1) * 0.5 * self.width, (1 - ndc[:, 1]) * 0.5 * self.height]
+
+
+def focal_length_px(pixels: float, fov_deg: float) -> float:
+    """The focal length in pixels of a symmetric pinhole view whose field of view `fov_deg` spans `pixels` (the
+    width with the horizontal field of view, or the height with the vertical one). With a camera at hand, use
+    `Camera.focal_px`."""
+    if not 0 < fov_deg < 180:
+        raise ValueError(f"field of view must be in (0, 180) degrees, got {fov_deg}")
+    return 0.5 * pixels / math.tan(math.radians(fov_deg) / 2.0)
 
 
 def gl_matrix(m: np.ndarray) -> bytes:

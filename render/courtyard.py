@@ -1,4 +1,6 @@
 """`builtin:courtyard`: an arcaded courtyard made in code (no downloads), the default scene everywhere.
+(`builtin:courtyard-static` is the same with its animations stopped; both are listed in
+`quadcast.render.scene.BUILTIN_SCENES`.)
 
 Layout (metres, +Y up): an open square |x|, |z| <= 8 paved with flagstones, a fountain at the origin, colonnades
 with arches on all four sides (columns every 2.5 m on the lines |x| = 8 and |z| = 8), an upper gallery at 4 m with
@@ -281,6 +283,3 @@ def static_courtyard_scene() -> Scene:
         obj.animation = None
     scene.name = "courtyard-static"
     return scene
-
-
-BUILTIN_SCENES = {"courtyard": courtyard_scene, "courtyard-static": static_courtyard_scene}

@@ -25,6 +25,11 @@ class GLUnavailableError(RuntimeError):
 @functools.lru_cache(maxsize=1)
 def gl_context() -> moderngl.Context:
     """The process's headless GL context (created on first use)."""
+    return create_context()
+
+
+def create_context() -> moderngl.Context:
+    """A new headless GL context, current on the calling thread (a GL worker thread makes its own)."""
     if ctypes.util.find_library("EGL") is None:
         raise GLUnavailableError(
             f"libEGL was not found: install Debian's {EGL_PACKAGES} (make demo / make test do this as root)")

@@ -1,5 +1,7 @@
 #version 430
 // Lighting pass: Blinn-Phong with a PCF-shadowed sun and point lights; sRGB 8-bit output.
+#include "camera.glsl"
+
 in vec2 v_uv;
 
 uniform sampler2D u_albedo;
@@ -8,7 +10,7 @@ uniform sampler2D u_position;
 uniform sampler2DShadow u_shadow_map;
 
 uniform mat4 u_inv_view;
-uniform mat4 u_inv_proj;
+uniform vec4 u_extents;           // the camera's frustum l, r, b, t at distance 1
 uniform mat4 u_light_vp;          // world -> sun clip space
 uniform vec3 u_sun_dir_view;      // direction the sunlight travels, in view space
 uniform vec3 u_sun_color;         // colour * intensity
@@ -45,9 +47,8 @@ vec3 tonemap(vec3 c) {
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     vec4 pos = texelFetch(u_position, px, 0);
-    if (pos.w <= 0.0) {  // sky
-        vec4 ray = u_inv_proj * vec4(v_uv * 2.0 - 1.0, 1.0, 1.0);
-        vec3 dir = normalize(mat3(u_inv_view) * (ray.xyz / ray.w));
+    if (is_sky(pos)) {
+        vec3 dir = normalize(mat3(u_inv_view) * view_ray(u_extents, 1.0, v_uv));
         vec3 sky = mix(u_sky * 0.9, u_sky * vec3(0.75, 0.85, 1.1), clamp(dir.y, 0.0, 1.0));
         f_color = vec4(pow(clamp(sky, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
         return;

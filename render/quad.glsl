@@ -3,16 +3,16 @@
 // (unit normal n facing the camera, view depth of the plane on the ray through its centre) plus 16 depth offsets:
 // sub-quad s (0 TL, 1 TR, 2 BL, 3 BR) corner c (same order) = off[s][c], signed distances along the corner's ray.
 
+#include "camera.glsl"
+
 uniform vec4 u_frustum;   // left, right, bottom, top on the near plane
 uniform float u_near;
 uniform float u_far;
 uniform ivec2 u_size;     // layer image size in pixels
 
-// The (unnormalised) view-space ray through image point p, with z = -near.
+// The (unnormalised) view-space ray through image point p (pixels from the top-left corner), with z = -near.
 vec3 ray_dir(vec2 p) {
-    return vec3(u_frustum.x + (u_frustum.y - u_frustum.x) * p.x / float(u_size.x),
-                u_frustum.w - (u_frustum.w - u_frustum.z) * p.y / float(u_size.y),
-                -u_near);
+    return view_ray(u_frustum.xywz, u_near, p, vec2(u_size));
 }
 
 // Distance along the unit ray r where it meets the plane dot(n, X) = d (n faces the camera, so dot(n, r) < 0).

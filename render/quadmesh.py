@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import moderngl
 import numpy as np
@@ -16,7 +15,7 @@ import numpy as np
 from quadcast.protocol.quads import QuadSet
 from quadcast.render.camera import Camera, gl_matrix
 from quadcast.render.gl import compute, program, set_uniforms
-from quadcast.render.renderer import read_texture
+from quadcast.render.renderer import CullFn, read_texture
 
 HERE = Path(__file__).resolve().parent
 QUAD_FLOATS = 24  # uvec4 head, vec4 normal+depth, 4 x vec4 offsets
@@ -123,21 +122,14 @@ class MeshView:
         self.fbo = ctx.framebuffer([self.color, self.position], self.depth)
         self.clear_color = clear_color
 
-    def render(self, mesh: QuadMesh, camera: Camera, atlas: moderngl.Texture) -> None:
+    def render(self, mesh: QuadMesh, camera: Camera, atlas: moderngl.Texture, cull: CullFn | None = None) -> None:
+        """Clear and draw `mesh` from `camera` (depth test LESS). `cull` (see `quadcast.render.renderer.CullFn`)
+        restricts the draw to the pixels it leaves at depth 1 (client.stereo's mode 2)."""
         self.fbo.use()
         self.fbo.clear(*self.clear_color, 0.0, depth=1.0)
-        self.ctx.enable(moderngl.DEPTH_TEST)
-        self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-        mesh.draw(camera, atlas)
-
-    def render_masked(self, mesh: QuadMesh, camera: Camera, atlas: moderngl.Texture,
-                      cull: Callable[[moderngl.Texture], None]) -> None:
-        """`render`, but only where `cull` leaves the depth buffer at 1: after the clear, `cull(self.depth)` writes
-        the mask as depth (0 = keep out) and the mesh is drawn with depth test LESS (client.stereo's mode 2)."""
-        self.fbo.use()
-        self.fbo.clear(*self.clear_color, 0.0, depth=1.0)
-        cull(self.depth)
-        self.fbo.use()
+        if cull is not None:
+            cull(self.depth)
+            self.fbo.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import moderngl
 import numpy as np
@@ -17,6 +18,12 @@ from quadcast.render.gl import gl_context, program, set_uniforms
 from quadcast.render.scene import Scene
 
 HERE = Path(__file__).resolve().parent
+
+CullFn = Callable[[moderngl.Texture], None]
+"""A cull step for a draw routine (`DeferredRenderer.geometry_pass`, `quadcast.render.quadmesh.MeshView.render`):
+called with the target's depth attachment after it is cleared to 1, it writes depth 0 where nothing may be drawn
+(e.g. `quadcast.client.stereo.StereoSynthesizer.cull`'s mask) and may bind another framebuffer; the routine then
+rebinds its own and draws with depth test LESS, so only the pixels left at depth 1 are drawn."""
 
 
 @dataclass
@@ -193,14 +200,19 @@ class DeferredRenderer:
             gm.vao_for(prog).render(moderngl.TRIANGLES)
 
     def geometry_pass(self, camera: Camera, t: float, target: GBuffer | None = None,
-                      prog: moderngl.Program | None = None) -> GBuffer:
+                      prog: moderngl.Program | None = None, cull: CullFn | None = None) -> GBuffer:
         """Fill a G-buffer (the renderer's own for this size unless `target` is given). `prog` may replace the
         G-buffer program with one that includes render/material.glsl (e.g. the server's depth peeling); bind its
-        extra textures to units >= 4 before calling."""
+        extra textures to units >= 4 before calling. `cull` (see `CullFn`) restricts the pass to the pixels it
+        leaves at depth 1; culled pixels stay cleared, which the lighting pass shades as (cheap) sky."""
         gb = target or self.gbuffer_for(camera.width, camera.height)
         gb.geometry_fbo.use()
         gb.clear()
+        if cull is not None:
+            cull(gb.depth)
+            gb.geometry_fbo.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.depth_func = "<"
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
         self.draw_geometry(camera, t, prog)
         gb.camera = camera
@@ -226,7 +238,7 @@ class DeferredRenderer:
         light_rad = np.array([l.radius for l in lights] + [1.0] * pad, "f4")
         set_uniforms(prog, u_albedo=0, u_normal=1, u_position=2, u_shadow_map=3,
                      u_inv_view=gl_matrix(np.linalg.inv(view)),
-                     u_inv_proj=gl_matrix(np.linalg.inv(camera.projection_matrix())),
+                     u_extents=camera.frustum.unit_extents,
                      u_light_vp=gl_matrix(self.light_view_projection()),
                      u_sun_dir_view=tuple(float(c) for c in sun_dir),
                      u_sun_color=tuple(float(c) for c in np.asarray(scene.sun.color) * scene.sun.intensity),

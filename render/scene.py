@@ -18,6 +18,7 @@ the offending field, e.g. ``models[0].animation.type``.
 """
 from __future__ import annotations
 
+import importlib
 import json
 import math
 import tomllib
@@ -198,16 +199,24 @@ def compose_transform(position=(0, 0, 0), rotation_deg=(0, 0, 0), scale=1.0) -> 
 
 # ----------------------------------------------------------------------------------------------- loading
 
+BUILTIN_SCENES: dict[str, str] = {
+    "courtyard": "quadcast.render.courtyard:courtyard_scene",
+    "courtyard-static": "quadcast.render.courtyard:static_courtyard_scene",
+}
+"""The `builtin:<name>` scenes, as "module:function" making the scene. Those modules build scenes from this
+module's types (they import it), so they are named here and imported when a scene is loaded, not imported here."""
+
+
 def load_scene(spec: str | Path) -> Scene:
     """A scene from `builtin:courtyard`, `monastery`, a scene file (.json/.toml) or a mesh file."""
     spec = str(spec)
     if spec.startswith("builtin:"):
-        from quadcast.render.courtyard import BUILTIN_SCENES
         name = spec.split(":", 1)[1]
         if name not in BUILTIN_SCENES:
             raise SceneError(f"unknown built-in scene {spec!r}; built-ins are "
                              + ", ".join(f"builtin:{n}" for n in BUILTIN_SCENES))
-        return BUILTIN_SCENES[name]()
+        module, function = BUILTIN_SCENES[name].split(":")
+        return getattr(importlib.import_module(module), function)()
     if spec == "monastery":
         return monastery_scene()
     path = Path(spec)

@@ -1,14 +1,20 @@
 """The live quadcast server (``quadcast server``): an asyncio process streaming one method to several clients.
 
-Per connection (:class:`Session`): the client's :class:`quadcast.protocol.messages.Hello` is checked (version, method,
-size, token) before anything is allocated; then the session's :class:`SessionPipeline` (renderer + the method's
-server, with their own GL context) runs in a worker *process* of its own (:class:`quadcast.transport.channel.ProcessWorker`,
-``spawn``), so the event loop only moves messages: it sends (pose, time, reference?) down a pipe and gets the
-encoded payload bytes back. (moderngl holds the GIL during GL calls, so a worker *thread* -- ``worker="thread"``,
-kept for comparison, see :mod:`quadcast.cli.stall` -- stalls the loop while it renders.) Poses go into a
-:class:`PosePredictor` on the loop; a 30 Hz ticker starts one encode at a time (when the worker is idle) for the
-pose predicted at the frame's display time; encoded frames wait in a bounded :class:`FrameQueue` until the socket
-takes them.
+Per connection (:class:`Session`): the client's :class:`quadcast.protocol.messages.Hello` is checked (version,
+method, size, token) before anything is allocated; then the session's :class:`SessionPipeline` (renderer + the
+method's server, with their own GL context) runs in a worker *process* of its own
+(:class:`quadcast.render.worker.ProcessWorker`, ``spawn``), so the event loop only moves messages: it sends (pose,
+time, reference?) down a pipe and gets the encoded payload bytes back. (moderngl holds the GIL during GL calls, so
+a worker *thread* -- ``worker="thread"``, kept for comparison, see ``quadcast.cli.stall`` -- stalls the loop while
+it renders.)
+
+Every decision is the session core's (:class:`quadcast.protocol.session.ServerSession`, which the virtual-time
+replay drives too): each pose and reference request goes into it; it says when to encode a frame and for which
+predicted pose and display time; encoded frames go through its bounded, chain-safe send queue to the socket. This
+module only carries those decisions out: one encode at a time on the worker, one sender.
+
+The method's server half comes from the ``make_server(name, renderer, config)`` the server is given (the registry
+:func:`quadcast.methods.make_server`; it must be picklable to reach a worker process).
 
 Robustness: a malformed message or any failure ends only its session, after an :class:`ErrorMessage` (a worker
 process that dies -- killed, crashed -- ends its session with ``ErrorCode.INTERNAL`` naming it); worker processes
@@ -26,27 +32,24 @@ import ipaddress
 import itertools
 import logging
 import os
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import encode_frame_payload
 from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
-                               ReferenceRequest, Welcome)
+                                        ReferenceRequest, Welcome)
+from quadcast.protocol.methods import METHODS, MethodConfig
+from quadcast.protocol.session import EncodeFrame, ServerCounters, ServerSession, ServerSessionConfig
 from quadcast.render.camera import Pose
-from quadcast.protocol.prediction import PosePredictor
-from quadcast.transport.channel import (Channel, GLWorker, ProcessWorker, TcpChannel, WorkerDied, WorkerError,
-                         is_self_contained)
-from quadcast.methods import METHODS, MethodConfig
+from quadcast.render.worker import GLWorker, ProcessWorker, WorkerDied, WorkerError
+from quadcast.transport.channel import Channel, TcpChannel
 
-__all__ = ["ServerConfig", "FrameQueue", "PipelineSpec", "SessionPipeline", "Session", "LiveServer", "check_bind"]
+__all__ = ["ServerConfig", "PipelineSpec", "SessionPipeline", "Session", "LiveServer", "check_bind"]
 
 log = logging.getLogger("quadcast.server")
-
-MAX_PREDICTION_S = 0.5
-"""Never extrapolate the pose further ahead than this (the predictor is kinematic)."""
 
 
 @dataclass
@@ -66,6 +69,8 @@ class ServerConfig:
     crf: float = 23.0
     lead_ms: float = 40.0               # display time - render start, beyond the measured encode time
     predict: bool = True
+    max_prediction_s: float = 0.5       # never extrapolate the pose further ahead (the predictor is kinematic)
+    max_frame_hz: float = 60.0          # flood guard: frames start at most this often, however fast poses come
     max_sessions: int = 4
     max_message_bytes: int = 64 * 1024  # client -> server messages are small (Hello, poses, requests)
     queue_frames: int = 3               # per-session send queue
@@ -84,11 +89,19 @@ class ServerConfig:
                              f"methods are {', '.join(METHODS)}")
         if not (0 < self.server_hz <= 240):
             raise ValueError(f"--hz: expected 0 < hz <= 240, got {self.server_hz}")
+        if not (0 < self.max_frame_hz <= 1000):
+            raise ValueError(f"max_frame_hz: expected 0 < hz <= 1000, got {self.max_frame_hz}")
         if not 0 <= self.spare_workers <= 8:
             raise ValueError(f"--spare-workers: expected 0..8, got {self.spare_workers}")
         if self.max_sessions < 1 or self.queue_frames < 1:
             raise ValueError("--max-sessions and the queue length must be >= 1")
         check_bind(self.host, self.token)
+
+    def session_config(self) -> ServerSessionConfig:
+        """The session core's settings: the client's clock is estimated from its poses."""
+        return ServerSessionConfig(predict=self.predict, downlink_s=self.lead_ms / 1e3,
+                                   max_prediction_s=self.max_prediction_s, queue_frames=self.queue_frames,
+                                   min_frame_interval_s=1.0 / self.max_frame_hz)
 
 
 def check_bind(host: str, token: str) -> None:
@@ -102,76 +115,13 @@ def check_bind(host: str, token: str) -> None:
                          f"clients send in Hello)")
 
 
-# ----------------------------------------------------------------------------------------------- queue
-
-@dataclass
-class QueueStats:
-    """What a :class:`FrameQueue` did."""
-
-    pushed: int = 0
-    dropped_stale: int = 0     # queued frames made useless by a newer self-contained frame
-    dropped_new: int = 0       # frames refused because the queue was full or their chain was broken
-
-
-class FrameQueue:
-    """A bounded per-session send queue that drops stale frames without breaking decoding.
-
-    Every frame that is not self-contained (a QUASAR residual, or an H.264 P-frame of any method) depends on all
-    frames since the last self-contained one (its reference / IDR), so the queue never drops a frame that a
-    queued or later one depends on:
-
-    - a self-contained frame replaces everything still queued (newest wins: nothing after it needs them);
-    - a dependent frame is queued if there is room; when the queue is full it is refused instead, the chain is
-      *broken*, and every later dependent frame is refused too until a self-contained one arrives. :meth:`push`
-      returns True in that case: the caller must make its next frame self-contained (``request_reference``).
-
-    So the queue holds at most ``max_frames`` frames, and what it sends is always decodable in order.
-    """
-
-    def __init__(self, max_frames: int = 3) -> None:
-        if max_frames < 1:
-            raise ValueError(f"FrameQueue: max_frames must be >= 1, got {max_frames}")
-        self.max_frames = max_frames
-        self._frames: collections.deque = collections.deque()
-        self._ready = asyncio.Event()
-        self.broken = False
-        self.stats = QueueStats()
-
-    def __len__(self) -> int:
-        return len(self._frames)
-
-    def push(self, frame, self_contained: bool) -> bool:
-        """Offer a frame (any object: the queue looks only at `self_contained`); returns True when the caller
-        must send a self-contained frame next."""
-        self.stats.pushed += 1
-        if self_contained:
-            self.stats.dropped_stale += len(self._frames)
-            self._frames.clear()
-            self._frames.append(frame)
-            self.broken = False
-        elif self.broken or len(self._frames) >= self.max_frames:
-            self.stats.dropped_new += 1
-            self.broken = True
-        else:
-            self._frames.append(frame)
-        if self._frames:
-            self._ready.set()
-        return self.broken
-
-    async def pop(self):
-        """The oldest queued frame (waits for one)."""
-        while not self._frames:
-            self._ready.clear()
-            await self._ready.wait()
-        return self._frames.popleft()
-
-
 # -------------------------------------------------------------------------------------------- pipeline
 
 @dataclass(frozen=True)
 class PipelineSpec:
     """What a session's worker builds (picklable: it crosses to the worker process)."""
 
+    make_server: Callable          # (method name, renderer, MethodConfig) -> MethodServer
     scene: str
     method: str
     width: int
@@ -194,18 +144,17 @@ class SessionPipeline:
     def __init__(self, spec: PipelineSpec, ctx=None, scene=None) -> None:
         from quadcast.render.renderer import DeferredRenderer
         from quadcast.render.scene import load_scene
-        from quadcast.methods import make_server
         self.spec = spec
         self.renderer = DeferredRenderer(scene if scene is not None else load_scene(spec.scene), ctx)
         config = MethodConfig(width=spec.width, height=spec.height, fovy_deg=spec.fovy_deg,
                               viewcell_radius=spec.viewcell_m, reference_every=spec.reference_every, crf=spec.crf)
-        self.server = make_server(spec.method, self.renderer, config)
+        self.server = spec.make_server(spec.method, self.renderer, config)
 
     def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool]:
         if reference:
             self.server.request_reference()
         payload = self.server.encode(Pose(np.asarray(position, np.float64), np.asarray(quat, np.float64)), t)
-        return encode_frame_payload(payload), is_self_contained(payload)
+        return encode_frame_payload(payload), payload.self_contained
 
     def close(self) -> None:
         self.server.close()
@@ -328,32 +277,19 @@ class SessionError(Exception):
         self.code = code
 
 
-@dataclass
-class SessionStats:
-    """Per-session counters (logged when the session ends)."""
-
-    poses: int = 0
-    frames_encoded: int = 0
-    frames_sent: int = 0
-    bytes_sent: int = 0
-    reference_requests: int = 0
-    encode_ms_total: float = 0.0
-
-
 class Session:
-    """One client: handshake, pose intake, encode ticker and sender over a :class:`Channel`."""
+    """One client over a :class:`Channel`: the handshake, then the session core's decisions run by three tasks --
+    the reader (poses and requests in), the encoder (one frame at a time on the worker) and the sender."""
 
     def __init__(self, server: "LiveServer", channel: Channel, session_id: int) -> None:
         self.server, self.channel, self.id = server, channel, session_id
         self.cfg = server.config
-        self.predictor = PosePredictor(smooth=False)
-        self.queue = FrameQueue(self.cfg.queue_frames)
-        self.stats = SessionStats()
+        self.core = ServerSession(self.cfg.session_config())
         self.worker: _ThreadWorker | _ProcessWorker | None = None
-        self.want_reference = False
-        self.last_pose: PoseUpdate | None = None
-        self.last_pose_local = 0.0
-        self.encode_ema_s = 0.1
+        self._decisions: asyncio.Queue[EncodeFrame] = asyncio.Queue()
+        self._queued = asyncio.Event()
+        self.frames_sent = 0
+        self.bytes_sent = 0
 
     # -- handshake
 
@@ -375,8 +311,8 @@ class Session:
     async def _start_worker(self, hello: Hello) -> None:
         """The session's worker (a process unless ``config.worker == "thread"``) with its pipeline built."""
         cfg = self.cfg
-        spec = PipelineSpec(cfg.scene, hello.method, hello.width, hello.height, hello.fovy_deg, cfg.viewcell_m,
-                            cfg.reference_every, cfg.crf)
+        spec = PipelineSpec(self.server.make_server, cfg.scene, hello.method, hello.width, hello.height,
+                            hello.fovy_deg, cfg.viewcell_m, cfg.reference_every, cfg.crf)
         name = f"session-{self.id}"
         self.worker = (_ProcessWorker(name, spec, self.server.claim_process()) if cfg.worker == "process"
                        else _ThreadWorker(name, spec, self.server.scene))
@@ -412,7 +348,7 @@ class Session:
                          self.channel.peer, msg.method, msg.width, msg.height, self.worker.kind, self.worker.pid,
                          os.getpid())
                 tasks = [asyncio.create_task(self._reader(), name=f"s{self.id}-reader"),
-                         asyncio.create_task(self._ticker(), name=f"s{self.id}-ticker"),
+                         asyncio.create_task(self._encoder(), name=f"s{self.id}-encoder"),
                          asyncio.create_task(self._sender(), name=f"s{self.id}-sender"),
                          asyncio.create_task(self._watch_worker(), name=f"s{self.id}-watch")]
                 done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
@@ -438,11 +374,12 @@ class Session:
             await asyncio.gather(*tasks, return_exceptions=True)
             await self.channel.close()
             await self._release()
+            c, q = self.core.counters, self.core.queue.counters
+            self.server.session_ended(c)
             log.info("session %d ended: %d poses, %d frames encoded (mean %.0f ms each), %d sent (%d bytes), "
-                     "%d reference requests, queue dropped %d stale + %d new", self.id, self.stats.poses,
-                     self.stats.frames_encoded, self.stats.encode_ms_total / max(self.stats.frames_encoded, 1), self.stats.frames_sent,
-                     self.stats.bytes_sent, self.stats.reference_requests, self.queue.stats.dropped_stale,
-                     self.queue.stats.dropped_new)
+                     "%d reference requests, queue dropped %d stale + %d new", self.id, c.poses, c.frames_encoded,
+                     c.encode_s_total * 1e3 / max(c.frames_encoded, 1), self.frames_sent, self.bytes_sent,
+                     c.reference_requests, q.dropped_stale, q.dropped_new)
 
     async def _send_error(self, code: int, text: str) -> None:
         try:
@@ -471,16 +408,14 @@ class Session:
             if msg is None or isinstance(msg, Bye):
                 return
             if isinstance(msg, PoseUpdate):
-                self.stats.poses += 1
                 try:
-                    accepted = self.predictor.observe(msg.t_client, msg.position, msg.quat)
+                    decision = self.core.pose_received(loop.time(), msg.t_client, msg.position, msg.quat)
                 except ValueError as exc:
                     raise ProtocolError(f"PoseUpdate: {exc}") from None
-                if accepted:
-                    self.last_pose, self.last_pose_local = msg, loop.time()
+                if decision is not None:
+                    self._decisions.put_nowait(decision)
             elif isinstance(msg, ReferenceRequest):
-                self.stats.reference_requests += 1
-                self.want_reference = True
+                self.core.reference_requested(loop.time())
                 log.info("session %d: reference requested (%s)", self.id, msg.reason)
             elif isinstance(msg, ErrorMessage):
                 log.warning("session %d: client error %d: %s", self.id, msg.code, msg.text)
@@ -488,59 +423,49 @@ class Session:
             else:
                 raise SessionError(ErrorCode.PROTOCOL, f"unexpected {type(msg).__name__} from a client")
 
-    def _target(self, now: float) -> tuple[Pose, float]:
-        """The pose to render and its display time (client clock) for a frame started at loop time ``now``."""
-        client_now = self.last_pose.t_client + (now - self.last_pose_local)
-        lead = min(self.encode_ema_s + self.cfg.lead_ms / 1e3, MAX_PREDICTION_S)
-        show_at = client_now + lead
-        if self.cfg.predict and len(self.predictor) >= 1:
-            p, q = self.predictor.predict(show_at)
-        else:
-            p, q = self.last_pose.position, self.last_pose.quat
-        return Pose(p, q), show_at
-
     async def _watch_worker(self) -> None:
         """End the session as soon as its worker process dies, even while no encode is under way."""
         await self.worker.died.wait()
         raise SessionError(ErrorCode.INTERNAL, f"session worker died: {self.worker.death}")
 
-    async def _encode(self, pose: Pose, t: float, reference: bool) -> tuple[Frame, bool]:
+    async def _encode(self, decision: EncodeFrame) -> tuple[Frame, bool]:
         """One frame from the worker, as the wire message that carries it (the worker's bytes, not re-encoded)."""
         try:
-            data, self_contained = await self.worker.encode(pose.position, pose.quat, t, reference)
+            data, self_contained = await self.worker.encode(decision.position, decision.quat, decision.display_t,
+                                                            decision.reference)
         except WorkerDied as exc:
             raise SessionError(ErrorCode.INTERNAL, f"session worker died: {exc}") from None
         except WorkerError as exc:
             raise SessionError(ErrorCode.INTERNAL, f"render/encode failed: {exc}") from None
         return Frame(data), self_contained
 
-    async def _ticker(self) -> None:
+    async def _encoder(self) -> None:
+        """Run the core's encode decisions one at a time; wake for its flood-guard timer."""
         loop = asyncio.get_running_loop()
-        period = 1.0 / self.cfg.server_hz
-        next_tick = loop.time()
         while True:
-            next_tick = max(next_tick + period, loop.time())
-            await asyncio.sleep(max(0.0, next_tick - loop.time()))
-            if self.last_pose is None:
-                continue
-            pose, show_at = self._target(loop.time())
-            reference, self.want_reference = self.want_reference, False
-            t0 = time.perf_counter()
-            frame, self_contained = await self._encode(pose, show_at, reference)   # one encode at a time
-            dt = time.perf_counter() - t0
-            self.encode_ema_s = 0.8 * self.encode_ema_s + 0.2 * dt
-            self.stats.frames_encoded += 1
-            self.stats.encode_ms_total += dt * 1e3
-            if self.queue.push(frame, self_contained):
-                self.want_reference = True    # a frame was refused: the next one must stand alone
+            deadline = self.core.timer()
+            try:
+                timeout = None if deadline is None else max(0.0, deadline - loop.time())
+                decision = await asyncio.wait_for(self._decisions.get(), timeout)
+            except asyncio.TimeoutError:
+                decision = self.core.handle_timer(loop.time())
+            while decision is not None:
+                frame, self_contained = await self._encode(decision)
+                now = loop.time()
+                decision = self.core.frame_encoded(now, frame, self_contained, now - decision.started)
+                self._queued.set()
 
     async def _sender(self) -> None:
         while True:
-            frame = await self.queue.pop()
+            frame = self.core.next_to_send()
+            if frame is None:
+                self._queued.clear()
+                await self._queued.wait()
+                continue
             before = self.channel.bytes_out
             await self.channel.send(frame)
-            self.stats.frames_sent += 1
-            self.stats.bytes_sent += self.channel.bytes_out - before
+            self.frames_sent += 1
+            self.bytes_sent += self.channel.bytes_out - before
 
 
 # ---------------------------------------------------------------------------------------------- server
@@ -548,11 +473,15 @@ class Session:
 class LiveServer:
     """Accepts connections (TCP, or WebRTC through :mod:`quadcast.transport.webrtc`) and runs a :class:`Session` for each."""
 
-    def __init__(self, config: ServerConfig, transport: str = "tcp") -> None:
+    def __init__(self, config: ServerConfig, make_server: Callable, transport: str = "tcp") -> None:
+        """``make_server(method, renderer, MethodConfig)`` builds a session's method server (in its worker: a
+        module-level function, e.g. :func:`quadcast.methods.make_server`)."""
         if transport not in ("tcp", "webrtc"):
             raise ValueError(f"--transport: expected tcp or webrtc, got {transport!r}")
         from quadcast.render.scene import load_scene
-        self.config, self.transport = config, transport
+        self.config, self.transport, self.make_server = config, transport, make_server
+        self.totals = ServerCounters()      # of the sessions that ended
+        self.sessions_ended = 0
         self.scene = load_scene(config.scene)
         self.active = 0
         self.workers: set = set()          # the sessions' live workers (killed at close if still there)
@@ -583,6 +512,12 @@ class LiveServer:
             proc = ProcessWorker(SessionHost, (self.config.scene,), "session-worker")
         self._spawn_spares()
         return proc
+
+    def session_ended(self, counters: ServerCounters) -> None:
+        """Add an ended session's counters to :attr:`totals`."""
+        self.sessions_ended += 1
+        for name, value in vars(counters).items():
+            setattr(self.totals, name, getattr(self.totals, name) + value)
 
     @property
     def port(self) -> int:

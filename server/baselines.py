@@ -6,16 +6,15 @@ time warp). `MeshWarpServer` streams the colour plus the view's depth map (`quad
 QUASAR runs MeshWarp at the display's 60 degrees, and also at 120 degrees rendered at twice the resolution so a
 wider margin survives rotation; `MeshWarpServer(fovy=120)` does the latter by default (`render_scale`).
 
-`payload.stats` (not sent): ``ms`` per stage -- ``render`` (G-buffer + lighting + read-back), ``video``
-(H.264 encode) and, for MeshWarp, ``depth`` (depth codec) -- plus ``bytes_video``, ``bytes_geometry`` and
-``keyframe`` (1 when the access unit is an IDR).
+`payload.stats.ms` (not sent): ms per stage -- ``render`` (G-buffer + lighting + read-back), ``video`` (H.264
+encode) and, for MeshWarp, ``depth`` (depth codec). A frame is self-contained when its access unit is an IDR.
 """
 from __future__ import annotations
 
 import time
 
 from quadcast.protocol.depth import encode_depth
-from quadcast.protocol.frame import FramePayload, Method, PayloadType
+from quadcast.protocol.frame import FramePayload, FrameStats, FrameType, Method
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.renderer import DeferredRenderer
 from quadcast.server.method import MethodServer
@@ -81,10 +80,9 @@ class _VideoBaselineServer(MethodServer):
         encoded = self.encoder.encode(frame.color, keyframe=self._keyframe_due())
         ms["video"] = _ms_since(start)
         geometry = self._geometry(frame, ms)
-        stats = {"type": "reference", "ms": ms, "bytes_video": len(encoded.data), "bytes_geometry": len(geometry),
-                 "keyframe": int(encoded.keyframe)}
-        payload = FramePayload(self.method, self.frame_id, PayloadType.REFERENCE, self.frame_id, float(t),
-                               pose.position.copy(), pose.quat.copy(), encoded.data, geometry, stats)
+        payload = FramePayload(self.method, self.frame_id, FrameType.REFERENCE, self.frame_id, float(t),
+                               pose.position.copy(), pose.quat.copy(), encoded.data, geometry,
+                               self_contained=encoded.keyframe, stats=FrameStats(ms=ms))
         self.frame_id += 1
         return payload
 

@@ -37,8 +37,7 @@ class LayerRenderer:
                max_radius_px: int = 48) -> list[GBuffer]:
         r = self.renderer
         layers = [r.gbuffer(camera, t, target=self.gbuffers[0])]
-        f = camera.frustum
-        focal_px = camera.height / ((f.top - f.bottom) / f.near)
+        focal_px = camera.focal_px[1]  # fy (fx for square pixels)
         for gb in self.gbuffers[1:]:
             layers[-1].position.use(4)
             layers[0].position.use(5)

@@ -5,6 +5,7 @@
 // f * r * (1/z0 - 1/z) pixels when the eye moves by r; it is potentially visible if, within that radius, the
 // visible layer is farther than the fragment (an edge it can appear from behind).
 #include "material.glsl"
+#include "camera.glsl"
 
 uniform sampler2D u_prev_position;     // previous layer's view positions (w > 0 where geometry)
 uniform sampler2D u_visible_position;  // the visible layer's
@@ -15,14 +16,14 @@ uniform int u_max_radius_px;
 
 float visible_depth(ivec2 p) {
     vec4 v = texelFetch(u_visible_position, clamp(p, ivec2(0), textureSize(u_visible_position, 0) - 1), 0);
-    return v.w > 0.0 ? -v.z : 1e30;
+    return is_sky(v) ? SKY_DEPTH : -v.z;
 }
 
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     float z = -v_view_pos.z;
     vec4 prev = texelFetch(u_prev_position, px, 0);
-    if (prev.w <= 0.0) discard;                              // nothing in front: nothing hidden here
+    if (is_sky(prev)) discard;                               // nothing in front: nothing hidden here
     if (z <= -prev.z * (1.0 + u_connectivity)) discard;      // already peeled, or the same surface
     float z0 = visible_depth(px);
     float radius = u_focal_px * u_viewcell_radius * (1.0 / min(z0, z) - 1.0 / z);

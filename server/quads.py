@@ -15,7 +15,8 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from quadcast.protocol.quads import QuadSet
+from quadcast.protocol.frame import FrameStats
+from quadcast.protocol.quads import QuadFrame, QuadSet, packed_size_bits_per_quad
 from quadcast.render.camera import Camera
 from quadcast.render.gl import compute, set_uniforms
 from quadcast.render.quadmesh import QUAD_FLOATS
@@ -53,6 +54,17 @@ class QuadTimings:
         self.gather += other.gather
 
 
+def quad_stats(frame: QuadFrame, ms: dict[str, float], cache_quads: int = 0) -> FrameStats:
+    """The server's figures of a quad frame: quads per layer, offsets, raw bits per quad, ms per stage."""
+    counts = [len(layer.quads) for layer in frame.layers]
+    return FrameStats(ms=ms, quads=int(sum(counts)),
+                      quads_per_layer={f"{i}:{layer.kind.name.lower()}": n
+                                       for i, (layer, n) in enumerate(zip(frame.layers, counts))},
+                      offsets=int(frame.offset_count),
+                      bits_per_quad_raw=packed_size_bits_per_quad(frame) if frame.quad_count else 0.0,
+                      cache_quads=cache_quads)
+
+
 def quad_map_levels(width: int, height: int) -> int:
     """m = floor(log2(min(w, h))) + 1 Quad Maps (QUASAR §3.2), capped at the 80-bit format's 2^11 quads."""
     return min(int(math.floor(math.log2(min(width, height)))) + 1, 12)
@@ -73,6 +85,16 @@ class QuadGenerator:
         self.merge = compute(ctx, HERE / "quad_merge.comp")
         self.gather = compute(ctx, HERE / "quad_gather.comp")
         self._empty_mask = ctx.texture((1, 1), 1, b"\x01", dtype="u1")
+        self._mask = ctx.texture((width, height), 1, dtype="u1")
+        self._mask.filter = (moderngl.NEAREST, moderngl.NEAREST)
+
+    def _upload_mask(self, mask: np.ndarray) -> moderngl.Texture:
+        """A top-row-first boolean mask of the layer's size, in the generator's mask texture (GL row order)."""
+        if mask.shape != (self.height, self.width):
+            raise ValueError(f"QuadGenerator: mask is {mask.shape[1]}x{mask.shape[0]}, layer is "
+                             f"{self.width}x{self.height}")
+        self._mask.write(np.ascontiguousarray(mask[::-1], np.uint8).tobytes())
+        return self._mask
 
     def _camera_uniforms(self, prog, camera: Camera) -> None:
         f = camera.frustum
@@ -80,9 +102,9 @@ class QuadGenerator:
                      u_size=(self.width, self.height))
 
     def generate(self, position: moderngl.Texture, normal: moderngl.Texture, camera: Camera, params: QuadParams,
-                 mask: moderngl.Texture | None = None, inner: Camera | None = None) -> tuple[QuadSet, QuadTimings]:
+                 mask: np.ndarray | None = None, inner: Camera | None = None) -> tuple[QuadSet, QuadTimings]:
         """Quads for the G-buffer textures `position`/`normal` seen by `camera`. Only pixels where `mask` (a
-        uint8 texture, GL row order) is non-zero; with `inner`, only pixels outside that camera's frustum."""
+        boolean (H, W) array, top row first) is set; with `inner`, only pixels outside that camera's frustum."""
         if (camera.width, camera.height) != (self.width, self.height):
             raise ValueError(f"QuadGenerator is for {self.width}x{self.height}, camera is "
                              f"{camera.width}x{camera.height}")
@@ -94,7 +116,7 @@ class QuadGenerator:
         self._camera_uniforms(prog, camera)
         position.use(0)
         normal.use(1)
-        (mask or self._empty_mask).use(2)
+        (self._upload_mask(mask) if mask is not None else self._empty_mask).use(2)
         fi = inner.frustum if inner is not None else None
         set_uniforms(prog, u_position=0, u_normal=1, u_mask=2, u_use_mask=mask is not None,
                      u_exclude_inner=inner is not None,

@@ -12,15 +12,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-from quadcast.protocol.frame import FramePayload, Method, PayloadType
-from quadcast.protocol.quads import FrameType, LayerKind, QuadFrame, QuadLayer, encode_quad_frame, packed_size_bits_per_quad
+from quadcast.protocol.frame import FramePayload, FrameType, Method
+from quadcast.protocol.quads import LayerKind, QuadFrame, QuadLayer, encode_quad_frame
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 from quadcast.render.renderer import DeferredRenderer, GBuffer
 from quadcast.server.layers import AtlasComposer, AtlasLayout, wide_camera
 from quadcast.server.method import MethodServer
-from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings
-from quadcast.server.quasar import _mask_texture
+from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings, quad_stats
 from quadcast.codec.encoder import AtlasEncoder, VideoSettings
 
 
@@ -89,7 +88,7 @@ class QuadStreamServer(MethodServer):
             self.renderer.gbuffer(cam, t, target=gb)
             ctx.finish()
             ms["gbuffers"] += (time.perf_counter() - t0) * 1e3
-            mask_tex = None
+            mask = None
             if mesh_layers:  # only what the earlier views' quads do not already cover, grown by one pixel
                 self.mesh.build(mesh_layers, (self.layout.width, self.layout.height))
                 self.mesh_view.render(self.mesh, cam, self.atlas.texture)
@@ -97,12 +96,10 @@ class QuadStreamServer(MethodServer):
                 with np.errstate(invalid="ignore"):
                     new = ~(np.abs(covered_depth - depth) <= s.covered_tolerance * depth)
                 new &= np.isfinite(depth)
-                mask_tex = _mask_texture(ctx, binary_dilation(new, iterations=1))
+                mask = binary_dilation(new, iterations=1)
             params = s.params if i == 0 else QuadParams(**{**s.params.__dict__, "sky": False})
-            quads, tm = self.generator.generate(gb.position, gb.normal, cam, params, mask_tex)
+            quads, tm = self.generator.generate(gb.position, gb.normal, cam, params, mask)
             timings.add(tm)
-            if mask_tex is not None:
-                mask_tex.release()
             kind = LayerKind.VISIBLE if i == 0 else LayerKind.HIDDEN
             layers.append(QuadLayer(kind, s.width, s.height, cam.to_array(), self.rects[i], quads))
             mesh_layers.append(MeshLayer(quads, cam, self.rects[i]))
@@ -129,13 +126,9 @@ class QuadStreamServer(MethodServer):
         video = self.encoder.encode(self.atlas.read(), keyframe=self._keyframe)
         self._keyframe = False
         ms["video"] = (time.perf_counter() - t0) * 1e3
-        counts = [len(l.quads) for l in layers]
-        stats = {"type": "reference", "quads": int(sum(counts)),
-                 "quads_per_layer": {f"{i}:{l.kind.name.lower()}": n for i, (l, n) in enumerate(zip(layers, counts))},
-                 "bytes_quads": len(geometry), "bytes_geometry": len(geometry), "bytes_video": len(video.data),
-                 "bits_per_quad_raw": packed_size_bits_per_quad(qframe) if qframe.quad_count else 0.0, "ms": ms}
-        payload = FramePayload(Method.QUADSTREAM, self.frame_id, PayloadType.REFERENCE, self.frame_id, float(t),
-                               pose.position, pose.quat, video.data, geometry, stats)
+        payload = FramePayload(Method.QUADSTREAM, self.frame_id, FrameType.REFERENCE, self.frame_id, float(t),
+                               pose.position, pose.quat, video.data, geometry, self_contained=video.keyframe,
+                               stats=quad_stats(qframe, ms))
         self.frame_id += 1
         return payload
 

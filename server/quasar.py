@@ -5,20 +5,18 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import moderngl
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-from quadcast.protocol.frame import FramePayload, Method, PayloadType
-from quadcast.protocol.quads import FrameType, LayerKind, QuadFrame, QuadLayer, QuadSet, encode_quad_frame, \
-    packed_size_bits_per_quad
+from quadcast.protocol.frame import FramePayload, FrameType, Method
+from quadcast.protocol.quads import LayerKind, QuadFrame, QuadLayer, QuadSet, encode_quad_frame
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.quadcache import QuadCache
 from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 from quadcast.render.renderer import DeferredRenderer, GBuffer
 from quadcast.server.layers import AtlasComposer, AtlasLayout, LayerRenderer, wide_camera
 from quadcast.server.method import MethodServer
-from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings
+from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings, quad_stats
 from quadcast.codec.encoder import AtlasEncoder, VideoSettings
 
 
@@ -49,14 +47,6 @@ class QuasarSettings:
             raise ValueError(f"viewcell radius must be >= 0 m, got {self.viewcell_radius}")
         if self.reference_every < 1:
             raise ValueError(f"reference_every must be >= 1, got {self.reference_every}")
-
-
-def _mask_texture(ctx: moderngl.Context, mask: np.ndarray) -> moderngl.Texture:
-    """A top-row-first boolean mask as a uint8 texture in GL row order."""
-    tex = ctx.texture((mask.shape[1], mask.shape[0]), 1, np.ascontiguousarray(mask[::-1], np.uint8).tobytes(),
-                      dtype="u1")
-    tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
-    return tex
 
 
 class QuasarServer(MethodServer):
@@ -116,11 +106,8 @@ class QuasarServer(MethodServer):
         ms["gbuffers"] = (time.perf_counter() - t0) * 1e3
 
         def quads(gb, cam, params, mask=None, generator=None, inner=None):
-            mask_tex = _mask_texture(ctx, mask) if mask is not None else None
-            q, tm = (generator or self.generator).generate(gb.position, gb.normal, cam, params, mask_tex, inner)
+            q, tm = (generator or self.generator).generate(gb.position, gb.normal, cam, params, mask, inner)
             timings.add(tm)
-            if mask_tex is not None:
-                mask_tex.release()
             return q
 
         L = self.layout
@@ -169,8 +156,8 @@ class QuasarServer(MethodServer):
         ms.update(quads=timings.quads, merge=timings.merge, gather=timings.gather)
 
         t0 = time.perf_counter()
-        qframe = QuadFrame(self.frame_id, FrameType.REFERENCE if is_reference else FrameType.RESIDUAL,
-                           self.reference_id, layers)
+        frame_type = FrameType.REFERENCE if is_reference else FrameType.RESIDUAL
+        qframe = QuadFrame(self.frame_id, frame_type, self.reference_id, layers)
         geometry = encode_quad_frame(qframe, s.zstd_level)
         ms["zstd"] = (time.perf_counter() - t0) * 1e3
 
@@ -185,22 +172,10 @@ class QuasarServer(MethodServer):
         video = self.encoder.encode(self.atlas.read(), keyframe=is_reference)
         ms["video"] = (time.perf_counter() - t0) * 1e3
 
-        counts = [len(l.quads) for l in layers]
-        stats = {
-            "type": "reference" if is_reference else "residual",
-            "quads": int(sum(counts)),
-            "quads_per_layer": {f"{i}:{l.kind.name.lower()}": n for i, (l, n) in enumerate(zip(layers, counts))},
-            "offsets": int(qframe.offset_count),
-            "bytes_quads": len(geometry),
-            "bytes_geometry": len(geometry),
-            "bytes_video": len(video.data),
-            "bits_per_quad_raw": packed_size_bits_per_quad(qframe) if qframe.quad_count else 0.0,
-            "cache_quads": len(self.cache),
-            "ms": ms,
-        }
-        payload = FramePayload(Method.QUASAR, self.frame_id,
-                               PayloadType.REFERENCE if is_reference else PayloadType.RESIDUAL, self.reference_id,
-                               float(t), camera.pose.position, camera.pose.quat, video.data, geometry, stats)
+        stats = quad_stats(qframe, ms, cache_quads=len(self.cache))
+        payload = FramePayload(Method.QUASAR, self.frame_id, frame_type, self.reference_id, float(t),
+                               camera.pose.position, camera.pose.quat, video.data, geometry,
+                               self_contained=is_reference and video.keyframe, stats=stats)
         self.frame_id += 1
         return payload
 

@@ -15,7 +15,9 @@ import numpy as np
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.renderer import DeferredRenderer
 from quadcast.render.scene import load_scene
-from quadcast.methods import MethodConfig, make_client, make_server
+from quadcast.methods import make_client, make_server
+from quadcast.protocol.frame import residual_to_reference_bytes
+from quadcast.protocol.methods import MethodConfig
 from quadcast.sim.metrics import compare
 from quadcast.sim.replay import DisplayedFrame, ReplayConfig, replay
 from quadcast.sim.report import FrameImages, format_figure, write_frames_csv, write_report_html, write_summary_json
@@ -60,7 +62,10 @@ def _mean_stages(rows: list[dict]) -> dict:
 
 
 class _Scorer:
-    """Ground truth at the client's true pose and time; FLIP/SSIM/PSNR; keeps the worst frames' images."""
+    """Ground truth at the client's true pose and time; FLIP/SSIM/PSNR; keeps the worst frames' images.
+
+    Frames shown before the first payload arrived (``frame_id`` < 0) are black for every method: they are not
+    scored (nor kept as worst frames)."""
 
     def __init__(self, renderer: DeferredRenderer, width: int, height: int, fovy: float, stereo=None):
         self.renderer, self.width, self.height, self.fovy = renderer, width, height, fovy
@@ -69,7 +74,17 @@ class _Scorer:
         self.stereo = stereo
         self.stereo_rows: list[dict] = []
 
+    @property
+    def scored(self) -> list[dict]:
+        return self.records
+
+    @property
+    def worst_images(self) -> list[FrameImages]:
+        return [f for _, f in self.worst]
+
     def score(self, index: int, t: float, pose: Pose, image: np.ndarray, extra: dict) -> None:
+        if extra.get("frame_id", 0) < 0:
+            return
         camera = Camera.perspective(pose, self.width, self.height, self.fovy)
         gt = self.renderer.render_color(camera, t)
         s = compare(gt, image)
@@ -124,36 +139,44 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     bar.close()
     server.close()
     client.close()
-    # Frames shown before the first payload arrived are black for every method: score only after that.
-    scored = [r for r in scorer.records if r["frame_id"] >= 0]
     rate = lambda b: b * 8 / totals.duration_s / 1e6  # noqa: E731
-    stats = totals.server_stats
+    c = totals.client
+    run = {"latency_ms": spec.latency_ms, "jitter_ms": spec.jitter_ms, "rate_mbit": spec.rate_mbit,
+           "loss": spec.loss, "viewcell_m": spec.viewcell_m, "display_frames": spec.frames, "every": spec.every,
+           "seed": spec.seed, "predict": spec.predict, "smooth": smooth, "mbps": rate(totals.bytes_total),
+           "mbps_video": rate(totals.bytes_video), "mbps_geometry": rate(totals.bytes_geometry),
+           "server_frames": totals.frames_sent, "frames_applied": c.frames_applied,
+           "frames_lost": totals.frames_lost, "frames_rejected": c.frames_rejected,
+           "frames_skipped": c.frames_skipped, "reference_requests": c.reference_requests,
+           "server_ms": _mean_stages([stats.ms for _, _, stats in totals.payloads])}
+    if spec.method == "quasar":
+        run["residual_to_reference_bytes"] = residual_to_reference_bytes((kind, n) for kind, n, _ in totals.payloads)
+    summary = build_summary(spec.method, spec.scene, spec.trace, (spec.width, spec.height), scorer, client_ms, run)
+    if out is not None:
+        write_outputs(Path(out), summary, scorer.scored, scorer.worst_images)
+    return summary
+
+
+def build_summary(method: str, scene: str, trace: str, size: tuple[int, int], scorer: "_Scorer",
+                  client_ms: list[dict], run: dict) -> dict:
+    """The one summary of a run, replayed or live: what was run, the scored frames' FLIP/SSIM/PSNR means and pose
+    errors, the client's mean stage times, the synthesized eye's figures when there are any, and `run`'s figures
+    (link, rates, frame counts), which win over the defaults here."""
+    scored = scorer.scored
+    mean = lambda key: float(np.mean([r[key] for r in scored])) if scored else None  # noqa: E731
     summary = {
-        "method": spec.method, "scene": spec.scene, "trace": spec.trace, "latency_ms": spec.latency_ms,
-        "jitter_ms": spec.jitter_ms, "rate_mbit": spec.rate_mbit, "loss": spec.loss, "viewcell_m": spec.viewcell_m,
-        "size": f"{spec.width}x{spec.height}", "frames": len(scored), "display_frames": spec.frames,
-        "every": spec.every, "seed": spec.seed, "predict": spec.predict, "smooth": smooth,
-        "mbps": rate(totals.bytes_total), "mbps_video": rate(totals.bytes_video),
-        "mbps_geometry": rate(totals.bytes_geometry),
-        "flip": float(np.mean([r["flip"] for r in scored])) if scored else None,
-        "ssim": float(np.mean([r["ssim"] for r in scored])) if scored else None,
-        "psnr": float(np.mean([r["psnr"] for r in scored])) if scored else None,
+        "method": method, "scene": scene, "trace": trace, "size": f"{size[0]}x{size[1]}",
+        "latency_ms": None, "jitter_ms": None, "rate_mbit": None, "loss": None, "viewcell_m": None,
+        "display_frames": None, "every": None, "mbps": None, "mbps_video": None, "mbps_geometry": None,
+        "frames": len(scored), "flip": mean("flip"), "ssim": mean("ssim"), "psnr": mean("psnr"),
         "pose_error_cm": _stats(r.get("pose_error_cm") for r in scored),
         "pose_error_deg": _stats(r.get("pose_error_deg") for r in scored),
-        "server_frames": totals.frames_sent, "frames_applied": totals.frames_applied,
-        "frames_lost": totals.frames_lost, "frames_rejected": totals.frames_rejected,
-        "reference_requests": totals.reference_requests,
-        "server_ms": _mean_stages(totals.server_ms), "client_ms": _mean_stages(client_ms),
+        "client_ms": _mean_stages(client_ms),
     }
-    if spec.method == "quasar":
-        ref = [s["bytes_geometry"] + s["bytes_video"] for s in stats if s.get("type") == "reference"]
-        res = [s["bytes_geometry"] + s["bytes_video"] for s in stats if s.get("type") == "residual"]
-        summary["residual_to_reference_bytes"] = float(np.mean(res) / np.mean(ref)) if ref and res else None
     stereo_rows = [r for r in scorer.stereo_rows if r is not None]
     if stereo_rows:
         summary["stereo"] = stereo_summary(stereo_rows)
-    if out is not None:
-        write_outputs(Path(out), summary, scored, [f for _, f in scorer.worst])
+    summary.update(run)
     return summary
 
 
@@ -257,7 +280,6 @@ def evaluate_recording(directory: str | Path) -> dict:
     renderer = DeferredRenderer(load_scene(rec["scene"]))
     scorer = _Scorer(renderer, w, h, rec.get("fovy_deg", 60.0))
     client_ms = []
-    stereo_rows = []
 
     def load(name: str) -> np.ndarray:
         image = np.asarray(Image.open(directory / name).convert("RGB"))
@@ -278,29 +300,11 @@ def evaluate_recording(directory: str | Path) -> dict:
             if eye.get("cost_ratio") is None:
                 raise ValueError(f"frame {f['index']}: stereo entry has no cost_ratio")
             camera = Camera.perspective(pose, w, h, rec.get("fovy_deg", 60.0))
-            stereo_rows.append(score_stereo_eye(renderer, camera, f["t"], Pose(eye["position"], eye["quat"]),
-                                                load(eye["right"]), float(eye["cost_ratio"])))
-    scored = scorer.records
-    run = dict(rec.get("summary", {}))
-    summary = {
-        "method": rec["method"], "scene": rec["scene"], "trace": rec.get("trace"),
-        "latency_ms": run.pop("latency_ms", None), "jitter_ms": run.pop("jitter_ms", None),
-        "rate_mbit": run.pop("rate_mbit", None), "loss": run.pop("loss", None),
-        "viewcell_m": run.pop("viewcell_m", rec.get("viewcell_m")), "size": f"{w}x{h}",
-        "frames": len(scored), "display_frames": run.pop("display_frames", None), "every": run.pop("every", None),
-        "mbps": run.pop("mbps", rec.get("mbps")), "mbps_video": run.pop("mbps_video", None),
-        "mbps_geometry": run.pop("mbps_geometry", None),
-        "flip": float(np.mean([r["flip"] for r in scored])) if scored else None,
-        "ssim": float(np.mean([r["ssim"] for r in scored])) if scored else None,
-        "psnr": float(np.mean([r["psnr"] for r in scored])) if scored else None,
-        "pose_error_cm": _stats(r.get("pose_error_cm") for r in scored),
-        "pose_error_deg": _stats(r.get("pose_error_deg") for r in scored),
-        "client_ms": _mean_stages(client_ms), "live": True,
-    }
-    if stereo_rows:
-        summary["stereo"] = stereo_summary(stereo_rows)
-    summary.update(run)
-    write_outputs(directory, summary, scored, [f for _, f in scorer.worst])
+            scorer.stereo_rows.append(score_stereo_eye(renderer, camera, f["t"], Pose(eye["position"], eye["quat"]),
+                                                       load(eye["right"]), float(eye["cost_ratio"])))
+    run = {"viewcell_m": rec.get("viewcell_m"), "mbps": rec.get("mbps"), **rec.get("summary", {}), "live": True}
+    summary = build_summary(rec["method"], rec["scene"], rec.get("trace"), (w, h), scorer, client_ms, run)
+    write_outputs(directory, summary, scorer.scored, scorer.worst_images)
     return summary
 
 

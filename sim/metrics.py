@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from quadcast.render.camera import focal_length_px
+
 __all__ = [
     "PSNR_CAP_DB",
     "FLIP_DEFAULT_PPD",
@@ -81,15 +83,15 @@ class ImageScores:
 def ppd_for_fov(width_px: int, hfov_deg: float) -> float:
     """Pixels per degree at the centre of a pinhole image ``width_px`` wide with horizontal field of view ``hfov_deg``.
 
-    The focal length in pixels is ``f = (width_px / 2) / tan(hfov / 2)``; one
-    degree at the centre spans ``f * tan(1 deg)`` pixels.
+    The focal length in pixels is ``f = (width_px / 2) / tan(hfov / 2)``
+    (:func:`quadcast.render.camera.focal_length_px`); one degree at the centre
+    spans ``f * tan(1 deg)`` pixels.
     """
     if not (isinstance(width_px, (int, np.integer)) and width_px > 0):
         raise ValueError(f"width_px must be a positive integer, got {width_px!r}")
     if not (math.isfinite(hfov_deg) and 0.0 < hfov_deg < 180.0):
         raise ValueError(f"hfov_deg must be in (0, 180) degrees, got {hfov_deg!r}")
-    focal_px = 0.5 * width_px / math.tan(math.radians(hfov_deg) / 2.0)
-    return focal_px * math.tan(math.radians(1.0))
+    return focal_length_px(width_px, hfov_deg) * math.tan(math.radians(1.0))
 
 
 def _check_pair(reference: np.ndarray, test: np.ndarray, min_side: int = 1) -> tuple[np.ndarray, np.ndarray]:

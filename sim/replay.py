@@ -1,10 +1,13 @@
 """Trace replay in virtual time (QUASAR §4.1.3): a client, a server and a link between them, on one clock.
 
-The client follows the trace at `client_hz` (60) and sends its pose at `server_hz` (30) over the uplink; the
-server, on each pose it receives, predicts the pose at the time its frame will be shown, renders and encodes
-for it, and sends the payload over the downlink (delay + jitter + size/rate, loss); the client applies every
-payload that has arrived and shows its newest state reprojected to its true pose. Nothing depends on how fast the
-machine is: when it is slower than real time, virtual time simply waits. The same seed gives the same run.
+This is the virtual-time driver of the session core (:mod:`quadcast.protocol.session`); the live server and
+client drive the same core on their event loops. The client follows the trace at `client_hz` (60) and sends its
+pose at `server_hz` (30) over the uplink; the server session decides, on each pose it receives, to render and
+encode a frame for the pose predicted at the time the frame will be shown, and the payload crosses the downlink
+(delay + jitter + size/rate, loss); the client session decides which arrived payloads to apply (dependent frames
+wait for a self-contained one after a loss) and when to ask for a reference, and the client shows its newest state
+reprojected to its true pose. Nothing depends on how fast the machine is: when it is slower than real time,
+virtual time simply waits. The same seed gives the same run.
 """
 from __future__ import annotations
 
@@ -17,14 +20,15 @@ from quadcast.client.method import MethodClient
 from quadcast.codec.decoder import VideoError
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload
+from quadcast.protocol.messages import PoseUpdate, ReferenceRequest, encode_message
+from quadcast.protocol.session import (ClientSession, EncodeFrame, RequestReference, ServerSession,
+                                       ServerSessionConfig)
 from quadcast.render.camera import Pose
-from quadcast.server.method import MethodServer
-from quadcast.protocol.prediction import PosePredictor
-from quadcast.sim.link import LinkModel
 from quadcast.render.traces import Trace
+from quadcast.server.method import MethodServer
+from quadcast.sim.link import LinkModel
 
-POSE_MESSAGE_BYTES = 76       # a PoseUpdate on the wire (see protocol/messages.py)
-REQUEST_MESSAGE_BYTES = 16
+POSE_MESSAGE_BYTES = len(encode_message(PoseUpdate(0, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))))
 
 
 @dataclass
@@ -39,6 +43,12 @@ class ReplayConfig:
     smooth: bool = False
     seed: int = 0
     server_delay_ms: float = 0.0   # virtual time the server spends per frame
+    reference_timeout_s: float = 1.5
+
+    def server_session(self) -> ServerSessionConfig:
+        """The server session of a replay: one shared clock, the link's nominal latency as the downlink estimate."""
+        return ServerSessionConfig(predict=self.predict, smooth=self.smooth, downlink_s=self.latency_ms / 1e3,
+                                   encode_s=self.server_delay_ms / 1e3, clock_offset_s=0.0)
 
 
 @dataclass
@@ -62,12 +72,9 @@ class ReplayTotals:
     bytes_geometry: int = 0
     bytes_total: int = 0
     frames_sent: int = 0
-    frames_applied: int = 0
-    frames_rejected: int = 0
-    frames_lost: int = 0
-    reference_requests: int = 0
-    server_ms: list = field(default_factory=list)   # per server frame: {stage: ms}
-    server_stats: list = field(default_factory=list)
+    frames_lost: int = 0                  # lost on the downlink
+    payloads: list = field(default_factory=list)    # per server frame sent: (frame type, bytes, stats)
+    client: object = None                 # the client session's counters
 
 
 def replay(trace: Trace, server: MethodServer, client: MethodClient, config: ReplayConfig,
@@ -78,62 +85,79 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
     up = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=None, loss=0.0, seed=config.seed)
     down = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=config.rate_mbit, loss=config.loss,
                      seed=config.seed + 1)
-    predictor = PosePredictor(smooth=config.smooth)
-    totals = ReplayTotals()
+    server_session = ServerSession(config.server_session())
+    client_session = ClientSession(config.reference_timeout_s)
+    client_session.connected(0.0)
+    totals = ReplayTotals(client=client_session.counters)
     t0 = float(trace.times[0])
     send_period, display_period = 1.0 / config.server_hz, 1.0 / config.client_hz
+    server_delay = config.server_delay_ms / 1e3
+    in_flight: tuple[float, EncodeFrame] | None = None      # (ready at, decision) of the frame being encoded
     next_send = 0.0
-    server_busy_until = 0.0
     newest: FramePayload | None = None
-    pending_request = False
-    latency_estimate = config.latency_ms / 1e3
+
+    def encode(decision: EncodeFrame | None) -> None:
+        nonlocal in_flight
+        if decision is None:
+            return
+        if decision.reference:
+            server.request_reference()
+        in_flight = (decision.started + server_delay, decision)
+
+    def finish_encode(until: float) -> None:
+        """The frame in flight is done if it is ready by `until`: send it, start the next one."""
+        nonlocal in_flight
+        while in_flight is not None and in_flight[0] <= until:
+            ready, decision = in_flight
+            in_flight = None
+            payload = server.encode(Pose(decision.position, decision.quat), decision.display_t)
+            encode(server_session.frame_encoded(ready, payload, payload.self_contained, ready - decision.started))
+            while (p := server_session.next_to_send()) is not None:
+                size = p.size_bytes
+                totals.frames_sent += 1
+                totals.bytes_video += len(p.video)
+                totals.bytes_geometry += len(p.geometry)
+                totals.bytes_total += size
+                totals.payloads.append((p.frame_type, len(p.video) + len(p.geometry), p.stats))
+                if down.send(ready, p, size) is None:
+                    totals.frames_lost += 1
+
+    def request(decision: RequestReference | None, now: float) -> None:
+        if decision is not None:
+            msg = ReferenceRequest(decision.reason)
+            up.send(now, msg, len(encode_message(msg)))
 
     for i in range(display_frames):
         now = i * display_period
-        # Client -> server: poses at the server rate (and reference requests).
+        # Client -> server: poses at the server rate.
         while next_send <= now + 1e-9:
             p, q = trace.pose_at(t0 + next_send)
-            up.send(next_send, ("pose", next_send, p, q), POSE_MESSAGE_BYTES)
+            up.send(next_send, PoseUpdate(0, next_send, p, q), POSE_MESSAGE_BYTES)
             next_send += send_period
         # Server: every message that has arrived by now, in arrival order.
         for d in up.poll(now):
-            kind = d.message[0]
-            if kind == "reference":
-                server.request_reference()
+            finish_encode(d.t_arrive)
+            if isinstance(d.message, ReferenceRequest):
+                server_session.reference_requested(d.t_arrive)
                 continue
-            _, t_sent, p, q = d.message
-            predictor.observe(t_sent, p, q)
-            start = max(d.t_arrive, server_busy_until)
-            show_at = start + config.server_delay_ms / 1e3 + latency_estimate
-            if config.predict:
-                pp, pq = predictor.predict(show_at)
-            else:
-                pp, pq = p, q
-            payload = server.encode(Pose(pp, pq), float(show_at))
-            server_busy_until = start + config.server_delay_ms / 1e3
-            totals.frames_sent += 1
-            totals.server_ms.append(dict(payload.stats.get("ms", {})))
-            totals.server_stats.append({k: v for k, v in payload.stats.items() if k != "ms"})
-            size = payload.size_bytes
-            totals.bytes_video += len(payload.video)
-            totals.bytes_geometry += len(payload.geometry)
-            totals.bytes_total += size
-            if down.send(server_busy_until, payload, size) is None:
-                totals.frames_lost += 1
+            m = d.message
+            encode(server_session.pose_received(d.t_arrive, m.t_client, m.position, m.quat))
+            finish_encode(d.t_arrive)
+        finish_encode(now)
         # Server -> client: apply what arrived.
         for d in down.poll(now):
+            payload: FramePayload = d.message
+            if not client_session.frame_received(now, payload.frame_id, payload.self_contained):
+                request(client_session.tick(now), now)
+                continue
             try:
-                client.receive(d.message)
-                newest = d.message
-                totals.frames_applied += 1
-            except (ProtocolError, VideoError):
-                totals.frames_rejected += 1
-            if client.needs_reference and not pending_request:
-                up.send(now, ("reference",), REQUEST_MESSAGE_BYTES)
-                totals.reference_requests += 1
-                pending_request = True
-            elif not client.needs_reference:
-                pending_request = False
+                client.receive(payload)
+                newest = payload
+                applied, reason = True, ""
+            except (ProtocolError, VideoError) as exc:
+                applied, reason = False, str(exc)
+            request(client_session.frame_processed(now, applied, client.needs_reference, reason), now)
+        request(client_session.tick(now), now)
         if show is not None and not show(i):
             continue
         p, q = trace.pose_at(t0 + now)

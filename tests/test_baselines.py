@@ -5,10 +5,12 @@ import dataclasses
 
 import numpy as np
 import pytest
+
 from scipy.spatial.transform import Rotation
 from skimage.metrics import peak_signal_noise_ratio
 
 from quadcast.client.baselines import ATWClient, MeshWarpClient
+from quadcast.codec.nal import contains_idr
 from quadcast.codec.decoder import AtlasDecoder, VideoError
 from quadcast.protocol.depth import decode_depth, encode_depth
 from quadcast.protocol.errors import ProtocolError
@@ -98,16 +100,18 @@ def test_server_stats_and_keyframes(courtyard_renderer):
     server = ATWServer(courtyard_renderer, W, H, keyframe_interval=3)
     payloads = [server.encode(POSE, T) for _ in range(4)]
     assert [p.frame_id for p in payloads] == [0, 1, 2, 3]
-    assert [p.stats["keyframe"] for p in payloads] == [1, 0, 0, 1]
+    # Self-contained exactly when the encoder made an IDR, which the access units confirm.
+    assert [p.self_contained for p in payloads] == [True, False, False, True]
+    assert [contains_idr(p.video) for p in payloads] == [True, False, False, True]
     server.request_reference()
-    assert server.encode(POSE, T).stats["keyframe"] == 1
+    assert server.encode(POSE, T).self_contained
     for p in payloads:
-        assert p.stats["ms"]["render"] > 0 and p.stats["ms"]["video"] > 0
-        assert p.stats["bytes_video"] == len(p.video) > 0 and p.stats["bytes_geometry"] == 0
+        assert p.stats.ms["render"] > 0 and p.stats.ms["video"] > 0
+        assert len(p.video) > 0 and p.geometry == b""
     server.close()
     mw = MeshWarpServer(courtyard_renderer, W, H)
     p = mw.encode(POSE, T)
-    assert p.stats["ms"]["depth"] > 0 and p.stats["bytes_geometry"] == len(p.geometry) > 0
+    assert p.stats.ms["depth"] > 0 and len(p.geometry) > 0
     mw.close()
     with pytest.raises(ValueError, match="even"):
         ATWServer(courtyard_renderer, 161, 90)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from quadcast.render.camera import Camera, Frustum, Pose, gl_matrix, parse_size
+from quadcast.render.camera import Camera, Frustum, Pose, focal_length_px, gl_matrix, parse_size
 
 
 def test_identity_pose_view_matrix_is_identity():
@@ -47,6 +47,21 @@ def test_off_axis_frustum_centre_ray():
     f = Frustum(-0.1, 0.3, -0.1, 0.1, near=0.1, far=10)
     clip = f.projection_matrix() @ [0.1, 0, -0.1, 1]  # centre of the near window
     assert np.allclose(clip[:2] / clip[3], [0, 0])
+
+
+def test_focal_lengths_and_unit_extents():
+    cam = Camera.perspective(Pose([0, 0, 0]), 160, 90, fovy_deg=60.0, near=0.25)
+    fx, fy = cam.focal_px
+    assert np.isclose(fy, 45 / np.tan(np.radians(30))) and np.isclose(fx, fy)  # square pixels
+    assert np.isclose(focal_length_px(90, 60.0), fy)
+    assert np.isclose(focal_length_px(1920, 90.0), 960.0)
+    # A point d metres right of the axis at depth z lands fx * d / z pixels right of the centre.
+    assert np.allclose(cam.project([[0.3, 0.0, -2.0]]), [[80 + fx * 0.3 / 2.0, 45]])
+    f = Frustum(-0.1, 0.3, -0.05, 0.15, near=0.1, far=10)
+    assert np.allclose(f.unit_extents, (-1.0, 3.0, -0.5, 1.5))
+    assert np.allclose(Camera(Pose([0, 0, 0]), f, 200, 100).focal_px, (50.0, 50.0))
+    with pytest.raises(ValueError, match="field of view"):
+        focal_length_px(100, 180.0)
 
 
 def test_linear_depth_inverts_projection():

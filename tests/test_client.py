@@ -14,7 +14,7 @@ from quadcast.client.quasar import QuasarClient
 from quadcast.client.stereo import StereoFrame, stereo_pair
 from quadcast.codec.decoder import VideoError
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.frame import FramePayload, Method, decode_frame_payload, encode_frame_payload
+from quadcast.protocol.frame import FramePayload, FrameType, Method, decode_frame_payload, encode_frame_payload
 from quadcast.protocol.quads import BLOB_VERSION, HEADER_STRUCT, LAYER_STRUCT
 from quadcast.render.camera import Camera, Pose
 from quadcast.server.quasar import QuasarServer, QuasarSettings
@@ -53,7 +53,7 @@ def test_reference_frame_renders_its_pose_at_640x360(courtyard_renderer):
     server = QuasarServer(courtyard_renderer, QuasarSettings(width=640, height=360, video=VideoSettings(crf=18)))
     client = QuasarClient(640, 360, ctx=courtyard_renderer.ctx)
     payload = server.encode(pose, t)
-    assert payload.stats["type"] == "reference"
+    assert payload.frame_type == FrameType.REFERENCE and payload.self_contained
     client.receive(wire(payload))
     img = client.render(pose)
     truth = courtyard_renderer.render(Camera.perspective(pose, 640, 360), t).color
@@ -79,7 +79,7 @@ def test_residuals_over_50_frames_keep_the_cache_bounded(courtyard_renderer):
     for k in range(51):
         t = k / 30
         payload = server.encode(walk_pose(t), t)
-        assert payload.stats["type"] == ("reference" if k == 0 else "residual")
+        assert payload.frame_type == (FrameType.REFERENCE if k == 0 else FrameType.RESIDUAL)
         client.receive(wire(payload))
         assert not client.needs_reference
         sizes.append(len(client.cache))
@@ -105,7 +105,7 @@ def stream(courtyard_renderer):
                                                              reference_distance=1e3, reference_angle_deg=180.0))
     payloads = [server.encode(walk_pose(k / 30), k / 30) for k in range(3)]
     server.close()
-    assert [p.stats["type"] for p in payloads] == ["reference", "residual", "residual"]
+    assert [p.frame_type for p in payloads] == [FrameType.REFERENCE, FrameType.RESIDUAL, FrameType.RESIDUAL]
     return payloads
 
 

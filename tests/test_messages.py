@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.frame import FramePayload, Method, PayloadType
+from quadcast.protocol.frame import FramePayload, Method, FrameType
 from quadcast.protocol.messages import (
     PROTOCOL_VERSION,
     Bye,
@@ -96,11 +96,11 @@ def test_one_byte_at_a_time():
 
 
 def test_frame_wraps_a_frame_payload():
-    p = FramePayload(Method.QUASAR, 5, PayloadType.RESIDUAL, 4, 1.25, np.array([1.0, 2.0, 3.0]),
+    p = FramePayload(Method.QUASAR, 5, FrameType.RESIDUAL, 4, 1.25, np.array([1.0, 2.0, 3.0]),
                      np.array([0.0, 0.0, 0.0, 1.0]), video=b"h264" * 10, geometry=b"quads")
     (msg,) = MessageDecoder().feed(encode_message(Frame.from_payload(p)))
     q = msg.decode()
-    assert (q.method, q.frame_id, q.frame_type, q.reference_id, q.t) == (Method.QUASAR, 5, PayloadType.RESIDUAL, 4, 1.25)
+    assert (q.method, q.frame_id, q.frame_type, q.reference_id, q.t) == (Method.QUASAR, 5, FrameType.RESIDUAL, 4, 1.25)
     assert q.video == p.video and q.geometry == p.geometry
     np.testing.assert_array_equal(q.position, p.position)
     with pytest.raises(ProtocolError, match="truncated"):

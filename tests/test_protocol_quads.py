@@ -362,7 +362,7 @@ def test_every_truncation_raises_protocol_error() -> None:
 
 def test_trailing_bytes_rejected() -> None:
     blob = encode_quad_frame(small_frame())
-    with pytest.raises(ProtocolError, match="unused data"):
+    with pytest.raises(ProtocolError, match="payload: 1 trailing bytes after the zstd frame"):
         decode_quad_frame(blob + b"\x00")
     empty = encode_quad_frame(QuadFrame(0, FrameType.REFERENCE, 0, []))
     with pytest.raises(ProtocolError, match="1 trailing bytes"):

@@ -46,6 +46,36 @@ def test_sky_has_infinite_depth_and_id_zero(plane_renderer):
     assert frame.color.mean() > 100  # sky colour, not black
 
 
+def test_geometry_pass_cull_draws_only_pixels_left_at_depth_one(ctx, plane_renderer):
+    """`cull` writes depth 0 over the left half: those pixels stay cleared (lit as sky), the rest is drawn as
+    without a cull step."""
+    from quadcast.render.renderer import GBuffer
+    cam = Camera.perspective(Pose([0, 0, 0]), 64, 36)
+    full = plane_renderer.render(cam)
+    gb = GBuffer(ctx, 64, 36)
+    calls = []
+
+    def cull(depth):
+        calls.append(depth)
+        fbo = ctx.framebuffer(depth_attachment=depth)
+        fbo.use()
+        fbo.scissor = (0, 0, 32, 36)
+        fbo.clear(depth=0.0)
+        fbo.scissor = None
+        fbo.release()
+
+    plane_renderer.geometry_pass(cam, 0.0, target=gb, cull=cull)
+    plane_renderer.lighting_pass(gb, 0.0)
+    assert calls == [gb.depth]
+    culled = gb.read()
+    assert (culled.object_id[:, :32] == 0).all() and np.isinf(culled.depth[:, :32]).all()
+    assert np.array_equal(culled.object_id[:, 32:], full.object_id[:, 32:])
+    assert np.array_equal(culled.color[:, 32:], full.color[:, 32:])
+    sky = plane_renderer.render(Camera.perspective(Pose([0, 0, 0], [0, 1, 0, 0]), 64, 36)).color
+    assert np.array_equal(culled.color[:, :32], sky[:, :32])  # culled pixels shade as sky
+    gb.release()
+
+
 def test_courtyard_frames_are_lit_textured_shadowed_and_deterministic(courtyard_renderer):
     from quadcast.render.traces import resolve_trace
     trace = resolve_trace("builtin:walk")

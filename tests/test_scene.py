@@ -49,6 +49,17 @@ def test_scene_file_errors_name_the_field(tmp_path, spec, message):
         scene_from_dict(spec, base_dir=tmp_path)
 
 
+def test_builtin_scenes_load_without_an_import_cycle():
+    """scene.py names the built-in scene makers without importing them; courtyard.py imports scene.py only."""
+    import subprocess
+    import sys
+    code = ("import sys; import quadcast.render.scene as s; assert 'quadcast.render.courtyard' not in sys.modules; "
+            "import quadcast.render.courtyard as c; assert not hasattr(c, 'BUILTIN_SCENES'); "
+            "scene = s.load_scene('builtin:courtyard-static'); "
+            "assert scene.name == 'courtyard-static' and all(o.animation is None for o in scene.objects)")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
 def test_bad_scene_specs(tmp_path):
     with pytest.raises(SceneError, match="builtin:courtyard"):
         load_scene("builtin:nowhere")

@@ -89,7 +89,7 @@ def test_residual_frame_covers_only_the_moving_object_and_what_it_reveals(ctx, m
 
 
 def test_encode_command_writes_decodable_video_and_stats(tmp_path):
-    import quadcast
+    import quadcast.cli as quadcast
     out = tmp_path / "enc"
     assert quadcast.main(["-q", "encode", "--scene", "builtin:courtyard", "--trace", "builtin:walk",
                           "--size", "192x108", "--frames", "6", "--viewcell", "0.5", "--every", "3",

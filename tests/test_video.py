@@ -8,7 +8,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from skimage.metrics import peak_signal_noise_ratio
 
-from quadcast.codec.decoder import AtlasDecoder, VideoError, nal_unit_types
+from quadcast.codec.decoder import AtlasDecoder, VideoError
+from quadcast.codec.nal import nal_unit_types
 from quadcast.codec.encoder import AtlasEncoder, EncodedFrame, VideoSettings
 
 WIDTH, HEIGHT = 320, 192

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("aiortc")
 
 from quadcast.codec.decoder import AtlasDecoder  # noqa: E402
-from quadcast.protocol.frame import PayloadType, decode_frame_payload  # noqa: E402
+from quadcast.protocol.frame import FrameType, decode_frame_payload  # noqa: E402
 from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, Frame, Hello, PoseUpdate, ReferenceRequest,  # noqa: E402
                                Welcome)
 from quadcast.protocol.quads import decode_quad_frame  # noqa: E402
@@ -26,7 +26,8 @@ def _payloads(n: int):
     """n QUASAR frames of builtin:walk at W x H (a reference, then residuals)."""
     from quadcast.render.renderer import DeferredRenderer
     from quadcast.render.scene import load_scene
-    from quadcast.methods import MethodConfig, make_server
+    from quadcast.methods import make_server
+    from quadcast.protocol.methods import MethodConfig
     from quadcast.render.traces import resolve_trace
     trace = resolve_trace("builtin:walk")
     server = make_server("quasar", DeferredRenderer(load_scene("builtin:courtyard")),
@@ -97,7 +98,7 @@ def test_two_local_peers_deliver_decodable_video_and_quads():
         # the picture from the video track decodes to (nearly) the server's atlas
         ours = AtlasDecoder().decode(received.video, received.frame_id)
         assert ours is not None
-        assert received.frame_type in (PayloadType.REFERENCE, PayloadType.RESIDUAL)
+        assert received.frame_type in (FrameType.REFERENCE, FrameType.RESIDUAL)
     direct = AtlasDecoder()
     reference = [direct.decode(p.video, p.frame_id) for p in sent]
     for ref_img, received in zip(reference, frames):

@@ -4,8 +4,10 @@ What goes where, on one ``RTCPeerConnection``:
 
 - the H.264 atlas (``FramePayload.video``) as the server's **video track**, sent *as encoded* (aiortc packetizes
   our access units; its own encoder is not used), RTP timestamp = 3000 x the frame's index on the track;
-- the rest of each frame (header, pose, quads) on the reliable ordered data channel ``frames``, as a
-  ``Frame`` message whose payload is ``u32 track index, u32 video bytes`` + the encoded payload without video;
+- the rest of each frame (header, pose, quads) on the reliable ordered data channel ``frames``, as a ``Frame``
+  message in the split form of :func:`quadcast.protocol.frame.split_video` (track index and video length, then the
+  frame without its video); the receiver joins it with its picture (:func:`quadcast.protocol.frame.join_video`)
+  -- neither side parses or re-serializes the frame;
 - poses on the unordered, no-retransmit data channel ``poses`` (a lost pose is simply superseded);
 - every other message (Hello, Welcome, ReferenceRequest, ErrorMessage, Bye) on the reliable channel ``control``.
 
@@ -32,12 +34,11 @@ import contextlib
 import fractions
 import json
 import logging
-import struct
 import time
 from typing import Awaitable, Callable
 
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.frame import DEFAULT_MAX_FRAME_BYTES, FramePayload, decode_frame_payload, encode_frame_payload
+from quadcast.protocol.frame import join_video, peek_frame_id, split_index, split_video
 from quadcast.protocol.messages import Frame, Message, MessageDecoder, PoseUpdate, encode_message
 from quadcast.transport.channel import Channel
 
@@ -61,7 +62,6 @@ MAX_HTTP_HEADER = 16 * 1024
 MAX_HTTP_BODY = 256 * 1024
 VIDEO_CLOCK = 90_000
 TICKS_PER_FRAME = 3000
-_META = struct.Struct("<II")   # track index, video bytes
 ACCESS_UNIT_DELIMITER = b"\x00\x00\x00\x01\x09\xf0"
 """Sent with the *next* frame's timestamp right after each access unit: aiortc's jitter buffer releases a frame
 only once a packet with a newer timestamp arrives, so this pushes every picture out at once (the delimiter then
@@ -115,7 +115,7 @@ class WebRtcChannel(Channel):
         self._incoming: asyncio.Queue = asyncio.Queue()
         self._decoders = {name: MessageDecoder(max_message_bytes) for name in CHANNELS}
         self._video_index = 0
-        self._meta: collections.OrderedDict[int, tuple[float, FramePayload, int]] = collections.OrderedDict()
+        self._meta: collections.OrderedDict[int, tuple[float, bytes]] = collections.OrderedDict()
         self._pictures: collections.OrderedDict[int, object] = collections.OrderedDict()
         self._encoder = None
         self._video_task: asyncio.Task | None = None
@@ -159,18 +159,17 @@ class WebRtcChannel(Channel):
             return
         for msg in messages:
             if name == "frames":
-                if not isinstance(msg, Frame) or len(msg.payload) < _META.size:
-                    self._incoming.put_nowait(ProtocolError(f"frames channel: expected a Frame with a track "
-                                                            f"index, got {type(msg).__name__}"))
+                if not isinstance(msg, Frame):
+                    self._incoming.put_nowait(ProtocolError(f"frames channel: expected a Frame, got "
+                                                            f"{type(msg).__name__}"))
                     return
-                index, video_bytes = _META.unpack_from(msg.payload)
                 try:
-                    payload = decode_frame_payload(msg.payload[_META.size:], self.max_message_bytes)
+                    index, video_bytes = split_index(msg.payload)
                 except ProtocolError as exc:
                     self._incoming.put_nowait(exc)
                     return
                 self.bytes_in += video_bytes
-                self._meta[index] = (time.monotonic(), payload, video_bytes)
+                self._meta[index] = (time.monotonic(), msg.payload)
                 while len(self._meta) > MAX_PENDING:
                     self._meta.popitem(last=False)
                     self.frames_unpaired += 1
@@ -182,19 +181,19 @@ class WebRtcChannel(Channel):
         """Hand out, in order, every frame whose picture has arrived; drop those waiting too long."""
         now = time.monotonic()
         while self._meta:
-            index, (t_arrived, payload, _) = next(iter(self._meta.items()))
+            index, (t_arrived, rest) = next(iter(self._meta.items()))
             picture = self._pictures.pop(index, None)
             if picture is None:
                 newer_picture = any(i > index for i in self._pictures)
                 if now - t_arrived > PAIR_TIMEOUT_S or (newer_picture and now - t_arrived > 0.2):
                     self._meta.popitem(last=False)
                     self.frames_unpaired += 1
-                    log.info("webrtc %s: frame %d's picture never came; dropped", self.peer, payload.frame_id)
+                    log.info("webrtc %s: frame %d's picture never came; dropped", self.peer,
+                             peek_frame_id(rest[8:]))
                     continue
                 return
             self._meta.popitem(last=False)
-            payload.video = self._reencode(picture)
-            self._incoming.put_nowait(Frame.from_payload(payload))
+            self._incoming.put_nowait(Frame(join_video(rest, self._reencode(picture))))
 
     def _reencode(self, picture) -> bytes:
         from quadcast.codec.encoder import AtlasEncoder, VideoSettings
@@ -237,28 +236,26 @@ class WebRtcChannel(Channel):
 
     async def send(self, msg: Message) -> None:
         if isinstance(msg, Frame):
-            await self.send_frame(decode_frame_payload(msg.payload, DEFAULT_MAX_FRAME_BYTES))   # our own frame
+            await self._send_frame(msg.payload)
             return
         name = "poses" if isinstance(msg, PoseUpdate) else "control"
         self._send_bytes(name, encode_message(msg))
         await self._drain(name)
 
-    async def send_frame(self, payload: FramePayload) -> None:
+    async def _send_frame(self, data: bytes) -> None:
         import av
         if self.video_out is None:
             raise RuntimeError("this WebRtcChannel has no outgoing video track (only the server sends frames)")
         index = self._video_index
         self._video_index += 1
-        meta = FramePayload(payload.method, payload.frame_id, payload.frame_type, payload.reference_id, payload.t,
-                            payload.position, payload.quat, b"", payload.geometry)
-        wire = _META.pack(index, len(payload.video)) + encode_frame_payload(meta)
-        self._send_bytes("frames", encode_message(Frame(wire)))
-        for data, pts in ((bytes(payload.video), index), (ACCESS_UNIT_DELIMITER, index + 1)):
-            packet = av.Packet(data)
+        rest, video = split_video(data, index)
+        self._send_bytes("frames", encode_message(Frame(rest)))
+        for au, pts in ((video, index), (ACCESS_UNIT_DELIMITER, index + 1)):
+            packet = av.Packet(au)
             packet.pts = pts * TICKS_PER_FRAME
             packet.time_base = fractions.Fraction(1, VIDEO_CLOCK)
             await self.video_out.queue.put(packet)
-        self.bytes_out += len(payload.video)
+        self.bytes_out += len(video)
         await self._drain("frames")
 
     async def close(self) -> None:

@@ -92,56 +92,9 @@ def cmd_render(args) -> int:
 
 # ------------------------------------------------------------------------------------------------ encode
 
-def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames: int, viewcell: float,
-                 every: int, out: Path, layers: int = 4, crf: float = 23.0, server_hz: float = 30.0,
-                 quiet: bool = False) -> dict:
-    """Run QUASAR's server along a trace (poses at `server_hz`, no network); write every frame's payload, the
-    H.264 stream and stats.json. Returns the stats."""
-    from quadcast.protocol.frame import encode_frame_payload
-    from quadcast.render.camera import Pose
-    from quadcast.render.renderer import DeferredRenderer
-    from quadcast.render.scene import load_scene
-    from quadcast.server.quasar import QuasarServer, QuasarSettings
-    from quadcast.codec.encoder import VideoSettings
-    from quadcast.render.traces import Trace, resolve_trace
-
-    scene = load_scene(scene_spec)
-    trace = trace_spec if isinstance(trace_spec, Trace) else resolve_trace(trace_spec)
-    if frames < 1:
-        raise ValueError(f"--frames must be >= 1, got {frames}")
-    times = np.arange(frames) / server_hz
-    if times[-1] > trace.duration:
-        raise ValueError(f"trace {trace.name!r} lasts {trace.duration:.1f} s; {frames} frames at {server_hz:g} Hz "
-                         f"need {times[-1]:.1f} s")
-    settings = QuasarSettings(width=size[0], height=size[1], layers=layers, viewcell_radius=viewcell,
-                              reference_every=every, video=VideoSettings(crf=crf))
-    server = QuasarServer(DeferredRenderer(scene), settings)
-    out.mkdir(parents=True, exist_ok=True)
-    records = []
-    with open(out / "atlas.h264", "wb") as stream:
-        for i, t in enumerate(_progress(times, desc="encode", quiet=quiet)):
-            p, q = trace.pose_at(trace.times[0] + t)
-            payload = server.encode(Pose(p, q), float(t))
-            (out / f"frame_{i:05d}.bin").write_bytes(encode_frame_payload(payload))
-            stream.write(payload.video)
-            records.append(payload.stats)
-    server.close()
-    ref = [r["bytes_quads"] + r["bytes_video"] for r in records if r["type"] == "reference"]
-    res = [r["bytes_quads"] + r["bytes_video"] for r in records if r["type"] == "residual"]
-    total = sum(r["bytes_quads"] + r["bytes_video"] for r in records)
-    stats = {
-        "scene": scene_spec, "trace": trace.name, "size": f"{size[0]}x{size[1]}", "viewcell_m": viewcell,
-        "layers": layers, "reference_every": every, "server_hz": server_hz, "frames": records,
-        "residual_to_reference_bytes": (float(np.mean(res)) / float(np.mean(ref))) if res and ref else None,
-        "mbps_at_30fps": total * 8 / len(records) * 30 / 1e6,
-        "mean_ms": {k: float(np.mean([r["ms"][k] for r in records])) for k in records[0]["ms"]},
-    }
-    (out / "stats.json").write_text(json.dumps(stats, indent=1))
-    return stats
-
-
 def cmd_encode(args) -> int:
     from quadcast.render.camera import parse_size
+    from quadcast.sim.encode import encode_trace
     stats = encode_trace(args.scene, args.trace, parse_size(args.size), args.frames, args.viewcell, args.every,
                          Path(args.out), layers=args.layers, crf=args.crf, quiet=args.quiet)
     ratio = stats["residual_to_reference_bytes"]
@@ -196,63 +149,19 @@ def cmd_eval(args) -> int:
 
 # ------------------------------------------------------------------------------------------------- bench
 
-def bench_render(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10) -> list[dict]:
-    """ms/frame of the deferred renderer (G-buffer + shadows + lighting + colour read-back) along each scene's
-    benchmark trace (server.bench.trace_for)."""
-    from quadcast.render.camera import Camera, Pose
-    from quadcast.render.renderer import DeferredRenderer
-    from quadcast.render.scene import SceneError, load_scene
-    from quadcast.cli.bench import trace_for
-
-    rows = []
-    for spec in scenes:
-        try:
-            scene = load_scene(spec)
-            trace = trace_for(spec, scene)
-        except SceneError as exc:
-            print(f"skip {spec}: {exc}")
-            continue
-        renderer = DeferredRenderer(scene)
-        for w, h in sizes:
-            poses = [trace.pose_at(t) for t in np.linspace(0, trace.duration, frames + 1)]
-            cams = [Camera.perspective(Pose(p, q), w, h) for p, q in poses]
-            renderer.render_color(cams[0], 0.0)  # warm-up: shader compilation, allocation
-            stages = {"shadow": 0.0, "geometry": 0.0, "lighting": 0.0, "readback": 0.0}
-            t0 = time.perf_counter()
-            for k, cam in enumerate(cams[1:]):
-                # The passes of render_color, each waited for, so their times add up to the frame's.
-                t, gb = k / 30, renderer.gbuffer_for(w, h)
-                for stage, run in (("shadow", lambda: renderer.render_shadows(t)),
-                                   ("geometry", lambda: renderer.geometry_pass(cam, t, gb)),
-                                   ("lighting", lambda: renderer.lighting_pass(gb, t)),
-                                   ("readback", gb.read_color)):
-                    ts = time.perf_counter()
-                    run()
-                    renderer.finish()
-                    stages[stage] += (time.perf_counter() - ts) * 1000 / frames
-            ms = (time.perf_counter() - t0) * 1000 / frames
-            rows.append({"scene": spec, "triangles": scene.triangle_count, "size": f"{w}x{h}", "ms_per_frame": ms,
-                         "ms": stages})
-            parts = "  ".join(f"{k} {v:6.1f}" for k, v in stages.items())
-            print(f"{spec:22s} {scene.triangle_count:8d} tris  {w}x{h:<5d} {ms:8.1f} ms/frame  ({parts})", flush=True)
-    return rows
-
-
 def cmd_bench(args) -> int:
     from quadcast.render.camera import parse_size
     sizes = [parse_size(s) for s in args.sizes.split(",")]
     scenes = args.scenes.split(",")
+    from quadcast.cli import bench
     if args.what == "render":
-        rows = bench_render(scenes, sizes, args.frames)
+        rows = bench.bench_render(scenes, sizes, args.frames)
     elif args.what == "server":
-        from quadcast.cli.bench import bench_server
-        rows = bench_server(scenes, sizes, args.frames, quiet=args.quiet)
+        rows = bench.bench_server(scenes, sizes, args.frames, quiet=args.quiet)
     elif args.what == "client":
-        from quadcast.cli.bench_client import bench_client
-        rows = bench_client(scenes, sizes, args.frames, quiet=args.quiet)
+        rows = bench.bench_client(scenes, sizes, args.frames, quiet=args.quiet)
     elif args.what == "stereo":
-        from quadcast.cli.bench_client import bench_stereo
-        rows = bench_stereo(scenes, sizes[0], args.frames, quiet=args.quiet)
+        rows = bench.bench_stereo(scenes, sizes[0], args.frames, quiet=args.quiet)
     else:
         raise ValueError(f"unknown benchmark {args.what!r}")
     if args.json:

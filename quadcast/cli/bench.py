@@ -1,42 +1,117 @@
-"""The server benchmark (`quadcast bench server`): QUASAR's server along a trace per scene and size, printing
-the mean ms per stage, Mbps at 30 fps and the residual/reference byte ratio (QUASAR §4: residual frames are 2-3x
-smaller than references). A benchmark, not a test: figures depend on the machine (llvmpipe here)."""
+"""The benchmarks (`quadcast bench render|server|client|stereo`, `make bench`): speed and size figures, not tests.
+
+Every benchmark runs along each scene's benchmark trace (:func:`trace_for`) and prints one line per scene and size;
+figures depend on the machine (Mesa llvmpipe on 2 CPU cores here, not a GPU).
+
+- `bench_render`: ms per frame of the deferred renderer, per pass (shadow map, G-buffer, lighting, read-back).
+- `bench_server`: QUASAR's server along the trace: mean ms per stage, Mbps at 30 fps and the residual/reference
+  byte ratio (QUASAR §4: residual frames are 2-3x smaller than references).
+- `bench_client`: a QUASAR server's frames (reference every 5, residuals between) into a `QuasarClient`: the
+  client's stage times -- zstd (quad blob decode), video (H.264 atlas decode), quad_update (quad cache), mesh
+  (upload + compute-shader mesh build), render (forward pass + read-back) -- and its cache size.
+- `bench_stereo`: every displayed frame made a stereo pair from one mesh render (client.stereo.MeshStereo): the
+  left eye drawn from the quad mesh, the right eye synthesized by YORO (mode "yoro") or by YORO plus re-rendering
+  the disoccluded pixels from the mesh (mode "rerender"). Quality is the synthesized right eye against the
+  ground-truth right eye (the deferred renderer at that eye's pose, IPD 63 mm) and against the right eye rendered
+  from the same mesh (which isolates the synthesis error from the streaming error). Cost ratio, as YORO reports
+  it: (left render + synthesis [+ mode 2 re-render]) / (left render + right render), both renders of the same
+  mesh; stage times are GPU-finished wall clock, medians over the frames, read-backs excluded. A last row runs
+  YORO on the deferred renderer's own G-buffer (client.stereo.benchmark_stereo), where the second-eye render it
+  saves is a full deferred render.
+"""
 from __future__ import annotations
 
+import sys
 import tempfile
+import time
 from pathlib import Path
 
-from quadcast.render.scene import SceneError, load_scene
-from quadcast.render.traces import resolve_trace, scene_tour
+import numpy as np
+from tqdm import tqdm
 
-STAGES = ("gbuffers", "quads", "merge", "gather", "zstd", "video")
+from quadcast.render.camera import Camera, Pose
+from quadcast.render.scene import Scene, SceneError, load_scene
+from quadcast.render.traces import Trace, resolve_trace, scene_tour
+
+SERVER_STAGES = ("gbuffers", "quads", "merge", "gather", "zstd", "video")
+CLIENT_STAGES = ("zstd", "video", "quad_update", "mesh", "render")
 
 
-def trace_for(scene_spec: str, scene=None):
+def trace_for(scene_spec: str, scene: Scene) -> Trace:
     """The benchmark trace of a scene: builtin:walk in the courtyard; in the monastery a 5 m circle at 2 m eye
     height in its main courtyard (open space: 5% of every view is farther than 3.5 m, so the camera never walks
-    through a wall); a circular tour inside the bounds of any other scene. `scene`: the loaded scene, if at hand."""
+    through a wall); a circular tour inside the bounds of any other scene."""
     if scene_spec.startswith("builtin:courtyard"):
         return resolve_trace("builtin:walk")
-    scene = scene if scene is not None else load_scene(scene_spec)
     if scene_spec == "monastery":
         return scene_tour(scene.bounds(), centre=(-3.7, 1.5), radius=5.0, eye_height=2.0, name="tour:monastery")
     return scene_tour(scene.bounds(), name=f"tour:{scene.name}")
 
 
-def bench_server(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 20, every: int = 5,
-                 viewcell: float = 0.5, crf: float = 23.0, quiet: bool = False) -> list[dict]:
-    from quadcast.cli import encode_trace
+def bench_scenes(specs: list[str]) -> list[tuple[str, Scene, Trace]]:
+    """Each scene that loads, with its benchmark trace; a scene that does not load is skipped with a line saying
+    why (e.g. the monastery without the `scenes` extra)."""
+    out = []
+    for spec in specs:
+        try:
+            scene = load_scene(spec)
+        except SceneError as exc:
+            print(f"skip {spec}: {exc}", flush=True)
+            continue
+        out.append((spec, scene, trace_for(spec, scene)))
+    return out
+
+
+def trace_poses(trace: Trace, frames: int, fps: float = 30.0) -> list[tuple[float, Pose]]:
+    """(t, pose) of `trace` at `fps`, from its start."""
+    return [(k / fps, Pose(*trace.pose_at(trace.times[0] + k / fps))) for k in range(frames)]
+
+
+def _progress(items, desc: str, quiet: bool):
+    return tqdm(items, desc=desc, unit="frame", disable=quiet, leave=False, file=sys.stderr)
+
+
+def bench_render(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10) -> list[dict]:
+    """ms/frame of the deferred renderer (G-buffer + shadows + lighting + colour read-back) along each scene's
+    benchmark trace (`trace_for`)."""
+    from quadcast.render.renderer import DeferredRenderer
 
     rows = []
-    print(f"{'scene':20s} {'size':>9s} " + " ".join(f"{s:>8s}" for s in STAGES)
+    for spec, scene, trace in bench_scenes(scenes):
+        renderer = DeferredRenderer(scene)
+        for w, h in sizes:
+            poses = [trace.pose_at(t) for t in np.linspace(0, trace.duration, frames + 1)]
+            cams = [Camera.perspective(Pose(p, q), w, h) for p, q in poses]
+            renderer.render_color(cams[0], 0.0)  # warm-up: shader compilation, allocation
+            stages = {"shadow": 0.0, "geometry": 0.0, "lighting": 0.0, "readback": 0.0}
+            t0 = time.perf_counter()
+            for k, cam in enumerate(cams[1:]):
+                # The passes of render_color, each waited for, so their times add up to the frame's.
+                t, gb = k / 30, renderer.gbuffer_for(w, h)
+                for stage, run in (("shadow", lambda: renderer.render_shadows(t)),
+                                   ("geometry", lambda: renderer.geometry_pass(cam, t, gb)),
+                                   ("lighting", lambda: renderer.lighting_pass(gb, t)),
+                                   ("readback", gb.read_color)):
+                    ts = time.perf_counter()
+                    run()
+                    renderer.finish()
+                    stages[stage] += (time.perf_counter() - ts) * 1000 / frames
+            ms = (time.perf_counter() - t0) * 1000 / frames
+            rows.append({"scene": spec, "triangles": scene.triangle_count, "size": f"{w}x{h}", "ms_per_frame": ms,
+                         "ms": stages})
+            parts = "  ".join(f"{k} {v:6.1f}" for k, v in stages.items())
+            print(f"{spec:22s} {scene.triangle_count:8d} tris  {w}x{h:<5d} {ms:8.1f} ms/frame  ({parts})", flush=True)
+    return rows
+
+
+def bench_server(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 20, every: int = 5,
+                 viewcell: float = 0.5, crf: float = 23.0, quiet: bool = False) -> list[dict]:
+    from quadcast.sim.encode import encode_trace
+
+    rows = []
+    print(f"{'scene':20s} {'size':>9s} " + " ".join(f"{s:>8s}" for s in SERVER_STAGES)
           + f" {'Mbps@30':>8s} {'res/ref':>7s} {'quads':>7s}", flush=True)
-    for spec in scenes:
-        try:
-            trace = trace_for(spec)
-        except SceneError as exc:
-            print(f"skip {spec}: {exc}")
-            continue
+    for spec, _, trace in bench_scenes(scenes):
         for w, h in sizes:
             with tempfile.TemporaryDirectory() as tmp:
                 stats = encode_trace(spec, trace, (w, h), frames, viewcell, every, Path(tmp), crf=crf, quiet=quiet)
@@ -46,7 +121,110 @@ def bench_server(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
             row = {"scene": spec, "size": f"{w}x{h}", "frames": frames, "ms": ms, "mbps_at_30fps":
                    stats["mbps_at_30fps"], "residual_to_reference_bytes": ratio, "mean_quads": quads}
             rows.append(row)
-            print(f"{spec:20s} {w:>4d}x{h:<4d} " + " ".join(f"{ms.get(s, float('nan')):8.1f}" for s in STAGES)
+            print(f"{spec:20s} {w:>4d}x{h:<4d} " + " ".join(f"{ms.get(s, float('nan')):8.1f}" for s in SERVER_STAGES)
                   + f" {row['mbps_at_30fps']:8.2f} {ratio if ratio is not None else float('nan'):7.3f}"
                   f" {quads:7.0f}", flush=True)
+    return rows
+
+
+def bench_client(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10, crf: float = 23.0,
+                 quiet: bool = False) -> list[dict]:
+    """Client stage times (mean ms over the frames after the first) and cache size at each size, per scene."""
+    from quadcast.client.quasar import QuasarClient
+    from quadcast.render.renderer import DeferredRenderer
+    from quadcast.server.quasar import QuasarServer, QuasarSettings
+    from quadcast.codec.encoder import VideoSettings
+
+    if frames < 2:
+        raise ValueError(f"bench client: --frames must be >= 2 (the first frame is a warm-up), got {frames}")
+    rows = []
+    for spec, scene, trace in bench_scenes(scenes):
+        renderer = DeferredRenderer(scene)
+        for w, h in sizes:
+            server = QuasarServer(renderer, QuasarSettings(width=w, height=h, video=VideoSettings(crf=crf)))
+            client = QuasarClient(w, h, ctx=renderer.ctx)
+            per_frame, kinds = [], []
+            for t, pose in _progress(trace_poses(trace, frames), f"client {spec} {w}x{h}", quiet):
+                payload = server.encode(pose, t)
+                client.receive(payload)
+                client.render(pose)
+                per_frame.append(dict(client.stats["ms"]))
+                kinds.append(payload.frame_type.name.lower())
+            server.close()
+            ms = {k: float(np.mean([f[k] for f in per_frame[1:]])) for k in CLIENT_STAGES}
+            row = {"scene": spec, "size": f"{w}x{h}", "frames": frames - 1,
+                   "residual_frames": kinds[1:].count("residual"), **{f"{k}_ms": v for k, v in ms.items()},
+                   "total_ms": float(sum(ms.values())), "cache_quads": int(client.stats["cache_quads"]),
+                   "cache_bytes": int(client.stats["cache_bytes"]), "mesh_quads": int(client.stats["mesh_quads"])}
+            rows.append(row)
+            print(f"{spec:18s} {w}x{h:<5d} " + " ".join(f"{k} {ms[k]:7.1f}" for k in CLIENT_STAGES)
+                  + f"  = {row['total_ms']:7.1f} ms/frame | cache {row['cache_quads']} quads "
+                    f"{row['cache_bytes'] / 2**20:.2f} MiB, mesh {row['mesh_quads']} quads "
+                    f"({row['residual_frames']}/{row['frames']} residual frames)", flush=True)
+    return rows
+
+
+def bench_stereo(scenes: list[str], size: tuple[int, int] = (960, 540), frames: int = 6, crf: float = 23.0,
+                 quiet: bool = False) -> list[dict]:
+    """YORO quality and cost ratio per scene and mode (see the module docstring)."""
+    from quadcast.client.quasar import QuasarClient
+    from quadcast.client.stereo import StereoSynthesizer, benchmark_stereo
+    from quadcast.render.renderer import DeferredRenderer
+    from quadcast.server.quasar import QuasarServer, QuasarSettings
+    from quadcast.codec.encoder import VideoSettings
+    from quadcast.sim.metrics import compare
+
+    if frames < 2:
+        raise ValueError(f"bench stereo: --frames must be >= 2 (the first frame is a warm-up), got {frames}")
+    w, h = size
+    rows = []
+    for spec, scene, trace in bench_scenes(scenes):
+        renderer = DeferredRenderer(scene)
+        server = QuasarServer(renderer, QuasarSettings(width=w, height=h, video=VideoSettings(crf=crf)))
+        client = QuasarClient(w, h, ctx=renderer.ctx)
+        acc: dict[str, list[dict]] = {"yoro": [], "rerender": []}
+        poses = trace_poses(trace, frames)
+        for k, (t, pose) in enumerate(_progress(poses, f"stereo {spec} {w}x{h}", quiet)):
+            client.receive(server.encode(pose, t))
+            for mode, records in acc.items():
+                f = client.stereo_frame(pose, mode, with_rendered=True)
+                if k == 0:
+                    continue  # warm-up
+                truth = renderer.render_color(Camera.perspective(f.other_camera.pose, w, h), t)
+                gt, own = compare(truth, f.synthesized), compare(f.rendered_other, f.synthesized)
+                records.append({"ssim": gt.ssim, "psnr": gt.psnr, "flip": gt.flip, "ssim_mesh": own.ssim,
+                                "psnr_mesh": own.psnr, "flip_mesh": own.flip,
+                                "psnr_rendered_eye": compare(truth, f.rendered_other).psnr,
+                                "disoccluded": f.disoccluded_fraction, "rerendered": f.rerender_fraction,
+                                **{f"{s}_ms": v for s, v in f.ms.items()}})
+        server.close()
+        for mode, records in acc.items():
+            row = {"scene": spec, "size": f"{w}x{h}", "source": "quad mesh", "mode": mode, "frames": len(records)}
+            for key in records[0]:
+                values = [r[key] for r in records]
+                row[key] = float(np.median(values) if key.endswith("_ms") else np.mean(values))
+            row["cost_ratio"] = ((row["dominant_ms"] + row["synthesize_ms"] + row["rerender_ms"])
+                                 / (row["dominant_ms"] + row["other_ms"]))
+            rows.append(row)
+            print(f"{spec:18s} {w}x{h} mesh  {mode:8s} vs truth: SSIM {row['ssim']:.4f} PSNR {row['psnr']:5.2f} dB "
+                  f"FLIP {row['flip']:.4f} | vs mesh-rendered eye: SSIM {row['ssim_mesh']:.4f} "
+                  f"PSNR {row['psnr_mesh']:5.2f} dB (that eye vs truth {row['psnr_rendered_eye']:5.2f} dB) | "
+                  f"holes {100 * row['disoccluded']:.2f}% redo {100 * row['rerendered']:.2f}% | "
+                  f"left {row['dominant_ms']:.1f} + synth {row['synthesize_ms']:.1f} + redo {row['rerender_ms']:.1f} "
+                  f"ms vs right {row['other_ms']:.1f} ms -> cost {100 * row['cost_ratio']:.1f}% of two renders",
+                  flush=True)
+        # YORO on the deferred renderer's own G-buffer: the render it saves is a full deferred render.
+        t, pose = poses[len(poses) // 2]
+        synth = StereoSynthesizer(renderer.ctx, w, h)
+        b = benchmark_stereo(renderer, Camera.perspective(pose, w, h), t, synth, repeats=3)
+        synth.release()
+        for mode, img, extra in (("yoro", b.synthesized, 0.0), ("rerender", b.rerendered, b.rerender_ms)):
+            s = compare(b.truth, img)
+            cost = (b.render_ms + b.synthesize_ms + extra) / (2 * b.render_ms)
+            rows.append({"scene": spec, "size": f"{w}x{h}", "source": "deferred g-buffer", "mode": mode, "frames": 1,
+                         "ssim": s.ssim, "psnr": s.psnr, "flip": s.flip, "synthesize_ms": b.synthesize_ms,
+                         "rerender_ms": extra, "other_ms": b.render_ms, "cost_ratio": cost})
+            print(f"{spec:18s} {w}x{h} gbuf  {mode:8s} vs truth: SSIM {s.ssim:.4f} PSNR {s.psnr:5.2f} dB "
+                  f"FLIP {s.flip:.4f} | synth {b.synthesize_ms:.1f} + redo {extra:.1f} ms vs a deferred render "
+                  f"{b.render_ms:.1f} ms -> cost {100 * cost:.1f}% of two renders", flush=True)
     return rows

@@ -7,7 +7,6 @@ The tests start their processes the same way.
 """
 from __future__ import annotations
 
-import ctypes
 import json
 import os
 import re
@@ -17,6 +16,8 @@ import sys
 import threading
 import time
 from pathlib import Path
+
+from quadcast.render.worker import die_with_parent
 
 __all__ = ["Child", "quadcast_argv", "run_demo", "LISTENING"]
 
@@ -30,10 +31,7 @@ def quadcast_argv(*args: str) -> list[str]:
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
-    except OSError:
-        pass
+    die_with_parent(signal.SIGTERM)
 
 
 class Child:

@@ -60,6 +60,7 @@ async def _run_until_signal(main, on_stop=None) -> None:
 # ------------------------------------------------------------------------------------------------ server
 
 def cmd_server(args) -> int:
+    from quadcast.methods import make_server
     from quadcast.render.camera import parse_size
     from quadcast.server.app import LiveServer, ServerConfig, server_summary_line
     _setup_logging(args.verbose)
@@ -73,7 +74,7 @@ def cmd_server(args) -> int:
                        spare_workers=args.spare_workers)
 
     async def main() -> None:
-        server = LiveServer(cfg, transport=args.transport)
+        server = LiveServer(cfg, make_server, transport=args.transport)
         await server.start()
         print(server_summary_line(server), flush=True)
         await server.serve_forever()
@@ -107,7 +108,9 @@ def cmd_client(args) -> int:
     from pathlib import Path
 
     from quadcast.client.app import ClientConfig, FatalServerError, LiveClient
+    from quadcast.methods import make_client
     from quadcast.render.camera import parse_size
+    from quadcast.sim.evaluate import evaluate_recording
     _setup_logging(args.verbose)
     host, port = parse_hostport(args.connect)
     w, h = parse_size(args.size)
@@ -117,7 +120,7 @@ def cmd_client(args) -> int:
                        width=w, height=h, fovy_deg=args.fovy, duration=args.duration, start=args.start,
                        record_every=args.record_every, token=args.token or "", transport=args.transport,
                        retries=args.retries, score=not args.no_score, stereo=args.stereo, labels=labels)
-    client = LiveClient(cfg)
+    client = LiveClient(cfg, make_client)
     result: dict = {}
 
     async def main() -> None:
@@ -132,7 +135,7 @@ def cmd_client(args) -> int:
         print("client: interrupted", flush=True)
         return 130
     if cfg.score:
-        result = client.score()
+        result = evaluate_recording(cfg.out)
         print(f"client: {format_live_summary(result)}", flush=True)
         print(f"client: report: {Path(args.out) / 'report.html'}", flush=True)
     else:
@@ -179,7 +182,7 @@ def cmd_link(args) -> int:
 
 def add_live_commands(sub) -> None:
     """Add ``server``, ``client`` and ``link`` to ``quadcast``'s subparsers."""
-    from quadcast.methods import METHODS
+    from quadcast.protocol.methods import METHODS
 
     p = sub.add_parser("server", help="live server: stream a method to clients over TCP or WebRTC")
     p.add_argument("--scene", default="builtin:courtyard")

@@ -5,14 +5,12 @@ this process with a 10 ms asyncio ticker on the same event loop, connects one ``
 process) at ``--size`` for ``--duration`` seconds, and reports the ticker's largest gap (and its 99th percentile)
 while the session ran: the longest time the loop could not read a pose or send a frame.
 
-    .venv/bin/python -m sim.live_stall --size 1920x1080 --duration 8
+    .venv/bin/python -m quadcast.cli.stall --size 1920x1080 --duration 8
 """
 from __future__ import annotations
 
 import argparse
 import asyncio
-import logging
-import re
 import tempfile
 from pathlib import Path
 
@@ -21,29 +19,13 @@ import numpy as np
 TICK_S = 0.010
 
 
-class _Frames(logging.Handler):
-    """Picks the encoded-frame count out of the server's "session N ended" log line."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.INFO)
-        self.frames = 0
-        self.encode_ms = float("nan")
-
-    def emit(self, record: logging.LogRecord) -> None:
-        m = re.search(r"(\d+) frames encoded \(mean (\d+) ms", record.getMessage())
-        if m:
-            self.frames, self.encode_ms = int(m.group(1)), float(m.group(2))
-
-
 async def measure(worker: str, size: str, duration: float, scene: str, trace: str) -> dict:
     """Run one session against an in-process server with ``worker``; the ticker's gaps while it ran."""
-    from quadcast.server.app import LiveServer, ServerConfig
     from quadcast.cli.demo import Child, quadcast_argv
+    from quadcast.methods import make_server
+    from quadcast.server.app import LiveServer, ServerConfig
 
-    frames = _Frames()
-    logging.getLogger("quadcast.server").addHandler(frames)
-    logging.getLogger("quadcast.server").setLevel(logging.INFO)
-    server = LiveServer(ServerConfig(scene=scene, port=0, worker=worker))
+    server = LiveServer(ServerConfig(scene=scene, port=0, worker=worker), make_server)
     await server.start()
     loop = asyncio.get_running_loop()
     gaps: list[float] = []
@@ -67,19 +49,20 @@ async def measure(worker: str, size: str, duration: float, scene: str, trace: st
             code = await loop.run_in_executor(None, client.wait, duration + 300)
         finally:
             client.stop()
-    for _ in range(300):                     # let the session end (it logs its frame count) before closing
-        if server.active == 0 and frames.frames:
+    for _ in range(300):                     # let the session end (its counters join the server's) before closing
+        if server.active == 0 and server.sessions_ended:
             break
         await asyncio.sleep(0.1)
     stop.set()
     await tick
     await server.close()
-    logging.getLogger("quadcast.server").removeHandler(frames)
     g = np.asarray(gaps) * 1e3
+    done = server.totals
     return {"worker": worker, "client_exit": code, "ticks": int(g.size),
             "max_gap_ms": float(g.max()) if g.size else float("nan"),
             "p99_gap_ms": float(np.percentile(g, 99)) if g.size else float("nan"),
-            "frames_encoded": frames.frames, "encode_ms": frames.encode_ms}
+            "frames_encoded": done.frames_encoded,
+            "encode_ms": done.encode_s_total * 1e3 / done.frames_encoded if done.frames_encoded else float("nan")}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,356 @@
+"""The session core, sans-I/O (after h11 / aioquic): events in, decisions out, no sockets, no clocks, no GL.
+
+One :class:`ServerSession` per client on the server and one :class:`ClientSession` in the client hold every
+decision a streaming session makes; the drivers only move bytes and run the method's GL work:
+
+- the virtual-time replay (:mod:`quadcast.sim.replay`) feeds them events stamped with virtual time;
+- the live asyncio server and client (:mod:`quadcast.server.app`, :mod:`quadcast.client.app`) feed them the same
+  events stamped with their event loop's clock.
+
+So the same events give the same decisions in both (``tests/test_session.py`` checks it).
+
+Server side -- events: :meth:`ServerSession.pose_received`, :meth:`~ServerSession.reference_requested`,
+:meth:`~ServerSession.frame_encoded`; decisions: :class:`EncodeFrame` (render and encode for this predicted pose
+and display time, self-contained or not) and the frames to send, in order, from :meth:`~ServerSession.next_to_send`
+(a bounded queue that drops stale frames but never breaks a reference chain).
+
+Client side -- events: :meth:`ClientSession.frame_received`, :meth:`~ClientSession.frame_processed`,
+:meth:`~ClientSession.frames_dropped`, :meth:`~ClientSession.tick`, :meth:`~ClientSession.connected`; decisions:
+whether to apply or skip a frame (dependent frames are skipped while the client waits for a self-contained one)
+and :class:`RequestReference` (ask the server for a self-contained frame, again every ``reference_timeout_s``
+while one is still needed).
+
+Times are seconds on the driver's clock (``now``); poses carry the client's clock (``t_client``).
+"""
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from quadcast.protocol.prediction import PosePredictor
+
+__all__ = ["ServerSessionConfig", "ServerSession", "ServerCounters", "EncodeFrame", "FrameQueue", "QueueCounters",
+           "ClientSession", "ClientCounters", "RequestReference"]
+
+ENCODE_EMA = 0.2
+"""Weight of the newest encode time in the server's running estimate."""
+
+
+# ------------------------------------------------------------------------------------------------- queue
+
+@dataclass
+class QueueCounters:
+    """What a :class:`FrameQueue` did."""
+
+    pushed: int = 0
+    dropped_stale: int = 0     # queued frames made useless by a newer self-contained frame
+    dropped_new: int = 0       # frames refused because the queue was full or their chain was broken
+
+
+class FrameQueue:
+    """A bounded send queue that drops stale frames without breaking decoding (sans-I/O).
+
+    Every frame that is not self-contained (a QUASAR residual, or an H.264 P-frame of any method) depends on all
+    frames since the last self-contained one, so the queue never drops a frame that a queued or later one depends
+    on:
+
+    - a self-contained frame replaces everything still queued (nothing after it needs them);
+    - a dependent frame is queued if there is room; when the queue is full it is refused instead, the chain is
+      *broken*, and every later dependent frame is refused too until a self-contained one arrives. :meth:`push`
+      returns True in that case: the next frame must be self-contained.
+
+    So the queue holds at most ``max_frames`` frames, and what it hands out is always decodable in order.
+    """
+
+    def __init__(self, max_frames: int = 3) -> None:
+        if max_frames < 1:
+            raise ValueError(f"FrameQueue: max_frames must be >= 1, got {max_frames}")
+        self.max_frames = max_frames
+        self._frames: collections.deque = collections.deque()
+        self.broken = False
+        self.counters = QueueCounters()
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def push(self, frame: Any, self_contained: bool) -> bool:
+        """Offer a frame (any object); returns True when the next frame must be self-contained."""
+        self.counters.pushed += 1
+        if self_contained:
+            self.counters.dropped_stale += len(self._frames)
+            self._frames.clear()
+            self._frames.append(frame)
+            self.broken = False
+        elif self.broken or len(self._frames) >= self.max_frames:
+            self.counters.dropped_new += 1
+            self.broken = True
+        else:
+            self._frames.append(frame)
+        return self.broken
+
+    def pop(self) -> Any | None:
+        """The oldest queued frame, or None."""
+        return self._frames.popleft() if self._frames else None
+
+
+# ------------------------------------------------------------------------------------------------ server
+
+@dataclass(frozen=True)
+class ServerSessionConfig:
+    """How a server session predicts and queues.
+
+    ``downlink_s`` is the expected time from a frame's send to its display (link latency, plus whatever the client
+    adds); the display time a frame is predicted for is the client's clock now + the running encode-time estimate +
+    ``downlink_s``, at most ``max_prediction_s`` ahead. ``clock_offset_s`` is the client's clock minus the driver's
+    clock when it is known (0 in virtual time, where both share one clock); ``None`` estimates it from the newest
+    pose (its ``t_client`` minus its arrival time), as a live server must. Frames start at least
+    ``min_frame_interval_s`` apart (a flood guard: poses that come faster coalesce, and the frame for the newest one
+    starts when the interval has passed -- see :meth:`ServerSession.timer`).
+    """
+
+    predict: bool = True
+    smooth: bool = False
+    downlink_s: float = 0.04
+    max_prediction_s: float = 0.5
+    encode_s: float = 0.0
+    clock_offset_s: float | None = None
+    queue_frames: int = 3
+    min_frame_interval_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("downlink_s", "max_prediction_s", "encode_s", "min_frame_interval_s"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"ServerSessionConfig.{name}: expected a finite number >= 0, got {v!r}")
+        if self.queue_frames < 1:
+            raise ValueError(f"ServerSessionConfig.queue_frames: expected >= 1, got {self.queue_frames}")
+
+
+@dataclass(frozen=True)
+class EncodeFrame:
+    """Decision: render and encode one frame for ``position``/``quat`` at scene time ``display_t`` (the client's
+    clock when it is expected to be shown); ``reference``: it must be self-contained."""
+
+    position: np.ndarray
+    quat: np.ndarray
+    display_t: float
+    reference: bool
+    started: float        # driver clock when the decision was made
+
+
+@dataclass
+class ServerCounters:
+    """What a server session received and decided."""
+
+    poses: int = 0
+    poses_ignored: int = 0        # out of order or duplicate
+    reference_requests: int = 0
+    frames_encoded: int = 0
+    encode_s_total: float = 0.0
+
+
+class ServerSession:
+    """One client's session on the server (see the module docstring).
+
+    Policy: a pose received while the encoder is idle starts a frame at once; poses received while it is busy
+    coalesce, and the frame after it starts as soon as it finishes, for the newest pose (and no sooner than
+    ``min_frame_interval_s`` after the one before). A reference request makes
+    the next frame self-contained, and so does a frame the send queue had to refuse.
+    """
+
+    def __init__(self, config: ServerSessionConfig | None = None) -> None:
+        self.config = config or ServerSessionConfig()
+        self.predictor = PosePredictor(smooth=self.config.smooth)
+        self.queue = FrameQueue(self.config.queue_frames)
+        self.counters = ServerCounters()
+        self.encode_estimate_s = self.config.encode_s
+        self._latest: tuple[float, float, np.ndarray, np.ndarray] | None = None   # arrival, t_client, p, q
+        self._want_reference = False
+        self._encoding = False
+        self._pose_pending = False
+        self._last_start: float | None = None
+
+    # -- events
+
+    def pose_received(self, now: float, t_client: float, position, quat) -> EncodeFrame | None:
+        """A client pose arrived at ``now``. Raises ValueError for a pose the predictor cannot use."""
+        self.counters.poses += 1
+        if not self.predictor.observe(t_client, position, quat):
+            self.counters.poses_ignored += 1
+            return None
+        latest = self.predictor.latest
+        self._latest = (float(now), latest.t, latest.position, latest.quat)
+        self._pose_pending = True
+        return self._maybe_start(now)
+
+    def reference_requested(self, now: float) -> None:
+        """The client lost its reference state: the next frame is self-contained."""
+        self.counters.reference_requests += 1
+        self._want_reference = True
+
+    def frame_encoded(self, now: float, frame: Any, self_contained: bool, encode_s: float) -> EncodeFrame | None:
+        """The frame of the last :class:`EncodeFrame` is ready (``encode_s`` after it started): it joins the send
+        queue, and the next frame starts at once if a newer pose arrived meanwhile."""
+        self._encoding = False
+        self.counters.frames_encoded += 1
+        self.counters.encode_s_total += encode_s
+        self.encode_estimate_s = (1 - ENCODE_EMA) * self.encode_estimate_s + ENCODE_EMA * encode_s
+        if self.queue.push(frame, self_contained):
+            self._want_reference = True          # a frame was refused: the next one must stand alone
+        return self._maybe_start(now)
+
+    def timer(self) -> float | None:
+        """When :meth:`handle_timer` must be called next (driver clock), or None: a pose waits for the flood
+        guard's interval while the encoder is idle."""
+        if self._encoding or not self._pose_pending or self._last_start is None:
+            return None
+        return self._last_start + self.config.min_frame_interval_s
+
+    def handle_timer(self, now: float) -> EncodeFrame | None:
+        """The time :meth:`timer` named has come."""
+        return self._maybe_start(now)
+
+    def next_to_send(self) -> Any | None:
+        """The next frame for the transport, in order (None when the queue is empty)."""
+        return self.queue.pop()
+
+    # -- state
+
+    @property
+    def encoding(self) -> bool:
+        return self._encoding
+
+    def client_clock(self, now: float) -> float:
+        """The client's clock at driver time ``now``."""
+        if self.config.clock_offset_s is not None:
+            return now + self.config.clock_offset_s
+        arrival, t_client, _, _ = self._latest
+        return t_client + (now - arrival)
+
+    def _maybe_start(self, now: float) -> EncodeFrame | None:
+        if self._encoding or not self._pose_pending:
+            return None
+        if self._last_start is not None and now < self._last_start + self.config.min_frame_interval_s:
+            return None
+        self._pose_pending = False
+        self._last_start = now
+        return self._start(now)
+
+    def _start(self, now: float) -> EncodeFrame:
+        cfg = self.config
+        lead = min(self.encode_estimate_s + cfg.downlink_s, cfg.max_prediction_s)
+        display_t = self.client_clock(now) + lead
+        if cfg.predict:
+            position, quat = self.predictor.predict(display_t)
+        else:
+            _, _, position, quat = self._latest
+        reference, self._want_reference = self._want_reference, False
+        self._encoding = True
+        return EncodeFrame(np.asarray(position, np.float64), np.asarray(quat, np.float64), float(display_t),
+                           reference, float(now))
+
+
+# ------------------------------------------------------------------------------------------------ client
+
+@dataclass(frozen=True)
+class RequestReference:
+    """Decision: ask the server for a self-contained frame (``reason`` says why)."""
+
+    reason: str
+
+
+@dataclass
+class ClientCounters:
+    """What a client session received and decided."""
+
+    frames_received: int = 0
+    frames_applied: int = 0
+    frames_rejected: int = 0
+    frames_skipped: int = 0      # dependent frames ignored while waiting for a self-contained one
+    frames_lost: int = 0         # gaps in the server's frame ids
+    reference_requests: int = 0
+    rejections: list = field(default_factory=list)   # the first few reasons
+
+
+class ClientSession:
+    """The client's side of a session (see the module docstring).
+
+    The client waits for a self-contained frame after connecting, after a gap in the server's frame ids and after
+    frames were dropped before it could process them; until one arrives it skips dependent frames. It asks for a
+    reference when it has evidence that it needs one (a frame skipped or rejected, or the method client saying it
+    lost its reference), at most every ``reference_timeout_s`` while the need lasts -- never merely because nothing
+    has arrived yet.
+    """
+
+    MAX_REASONS = 8
+
+    def __init__(self, reference_timeout_s: float = 1.5) -> None:
+        self.reference_timeout_s = float(reference_timeout_s)
+        self.counters = ClientCounters()
+        self.awaiting_self_contained = True
+        self.needs_reference = False       # the method client's own view, from frame_processed
+        self.last_frame_id: int | None = None
+        self._last_request: float | None = None
+        self._evidence = ""                # why a reference is needed, since the last request
+
+    # -- events
+
+    def connected(self, now: float) -> None:
+        """A (re)connection: nothing received before it can be continued."""
+        self.awaiting_self_contained = True
+        self.last_frame_id = None
+
+    def frame_received(self, now: float, frame_id: int, self_contained: bool) -> bool:
+        """A frame arrived; returns True to apply it, False to skip it."""
+        c = self.counters
+        c.frames_received += 1
+        if self.last_frame_id is not None and frame_id > self.last_frame_id + 1:
+            c.frames_lost += frame_id - self.last_frame_id - 1
+            self.awaiting_self_contained = True
+        self.last_frame_id = frame_id if self.last_frame_id is None else max(self.last_frame_id, frame_id)
+        if self.awaiting_self_contained and not self_contained:
+            c.frames_skipped += 1
+            self._evidence = self._evidence or "waiting for a self-contained frame"
+            return False
+        return True
+
+    def frame_processed(self, now: float, applied: bool, needs_reference: bool,
+                        reason: str = "") -> RequestReference | None:
+        """The method client applied (or rejected, with ``reason``) a frame; ``needs_reference`` is its state."""
+        c = self.counters
+        if applied:
+            c.frames_applied += 1
+            self.awaiting_self_contained = False
+        else:
+            c.frames_rejected += 1
+            if len(c.rejections) < self.MAX_REASONS:
+                c.rejections.append(reason)
+            self._evidence = self._evidence or reason or "frame rejected"
+        self.needs_reference = needs_reference
+        if needs_reference:
+            self._evidence = self._evidence or "reference missing"
+        return self.tick(now)
+
+    def frames_dropped(self, now: float, count: int, reason: str = "frames dropped before processing") -> None:
+        """The driver dropped ``count`` received frames unprocessed (unreadable, or its inbox overflowed)."""
+        self.counters.frames_skipped += count
+        self.awaiting_self_contained = True
+        self._evidence = self._evidence or reason
+
+    def tick(self, now: float) -> RequestReference | None:
+        """Whether to ask for a reference now."""
+        if not (self.needs_reference or self.awaiting_self_contained):
+            self._evidence = ""
+            self._last_request = None
+            return None
+        if not self._evidence:
+            return None
+        if self._last_request is not None and now - self._last_request < self.reference_timeout_s:
+            return None
+        self._last_request = now
+        self.counters.reference_requests += 1
+        reason, self._evidence = self._evidence, ""
+        return RequestReference(reason)

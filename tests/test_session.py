@@ -1,0 +1,337 @@
+"""The session core (quadcast.protocol.session): its decisions, and the same decisions from both of its drivers.
+
+The cross-driver test runs one event sequence through the virtual-time replay (quadcast.sim.replay) and through the
+live server's asyncio session (quadcast.server.app.Session) -- the latter on an event loop whose clock is virtual,
+with a fake channel and a fake worker -- and checks that every decision is identical.
+"""
+from __future__ import annotations
+
+import asyncio
+import heapq
+import types
+
+import numpy as np
+import pytest
+
+from quadcast.protocol.frame import FramePayload, FrameStats, FrameType, Method
+from quadcast.protocol.messages import Bye, Frame, Hello, PoseUpdate, ReferenceRequest, Welcome
+from quadcast.protocol.session import (ClientSession, EncodeFrame, FrameQueue, RequestReference, ServerSession,
+                                       ServerSessionConfig)
+
+Q0 = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def _pose(x: float) -> tuple[np.ndarray, np.ndarray]:
+    return np.array([x, 1.6, 0.0]), Q0
+
+
+# ------------------------------------------------------------------------------------------ send queue
+
+def test_frame_queue_drops_stale_frames_but_never_a_dependency():
+    q = FrameQueue(max_frames=2)
+    assert q.push("r0", self_contained=True) is False
+    assert q.push("d1", self_contained=False) is False
+    # full: the new dependent frame is refused (not the frame it depends on) and a self-contained one is needed
+    assert q.push("d2", self_contained=False) is True
+    # later dependent frames depend on the refused one: refused too, until a self-contained frame comes
+    assert q.push("d3", self_contained=False) is True
+    assert q.pop() == "r0"
+    assert q.push("d4", self_contained=False) is True
+    # a self-contained frame replaces the stale queue (newest wins) and mends the chain
+    assert q.push("r5", self_contained=True) is False
+    assert len(q) == 1 and q.pop() == "r5" and q.pop() is None
+    assert q.push("d6", self_contained=False) is False and q.pop() == "d6"
+    c = q.counters
+    assert (c.pushed, c.dropped_new, c.dropped_stale) == (7, 3, 1)
+    with pytest.raises(ValueError, match="max_frames"):
+        FrameQueue(0)
+
+
+# -------------------------------------------------------------------------------------------- server
+
+def test_server_encodes_each_pose_and_predicts_the_display_time():
+    s = ServerSession(ServerSessionConfig(downlink_s=0.05, clock_offset_s=0.0, smooth=False))
+    d = s.pose_received(0.0, 0.0, *_pose(0.0))
+    assert isinstance(d, EncodeFrame) and d.display_t == pytest.approx(0.05) and not d.reference
+    assert s.pose_received(0.01, 0.01, *_pose(0.01)) is None          # busy: coalesces
+    assert s.pose_received(0.02, 0.02, *_pose(0.02)) is None
+    d = s.frame_encoded(0.03, "f0", True, 0.03)                       # the next frame starts at once, newest pose
+    assert d is not None and d.started == 0.03
+    # constant velocity 1 m/s along x, extrapolated to the display time
+    assert d.display_t == pytest.approx(0.03 + 0.2 * 0.03 + 0.05)
+    assert d.position[0] == pytest.approx(d.display_t, abs=1e-9)
+    assert s.next_to_send() == "f0" and s.next_to_send() is None
+    assert s.frame_encoded(0.05, "f1", False, 0.02) is None           # nothing new arrived
+    assert s.pose_received(0.04, 0.015, *_pose(0.015)) is None         # out of order: ignored
+    assert s.counters.poses_ignored == 1 and s.counters.frames_encoded == 2
+
+
+def test_server_reference_requests_and_refused_frames_make_the_next_frame_self_contained():
+    s = ServerSession(ServerSessionConfig(clock_offset_s=0.0, queue_frames=1))
+    s.pose_received(0.0, 0.0, *_pose(0.0))
+    s.reference_requested(0.01)
+    s.pose_received(0.02, 0.02, *_pose(0.0))
+    d = s.frame_encoded(0.03, "r0", True, 0.03)
+    assert d.reference                                        # the request reaches the next frame
+    s.pose_received(0.04, 0.04, *_pose(0.0))
+    d = s.frame_encoded(0.05, "d1", False, 0.02)             # the queue is full (r0 unsent): d1 refused
+    assert d.reference and s.queue.counters.dropped_new == 1
+    assert s.next_to_send() == "r0" and s.next_to_send() is None
+
+
+def test_server_estimates_the_client_clock_and_caps_the_horizon():
+    s = ServerSession(ServerSessionConfig(downlink_s=0.04, max_prediction_s=0.1, predict=False))
+    d = s.pose_received(100.0, 7.0, *_pose(0.0))             # the client's clock is 93 s behind ours
+    assert d.display_t == pytest.approx(7.04)
+    s.frame_encoded(100.5, "f", True, 0.5)                   # a slow encode: the lead is capped
+    d = s.pose_received(101.0, 8.0, *_pose(0.0))
+    assert d.display_t == pytest.approx(8.0 + 0.1)
+
+
+def test_server_flood_guard_defers_frames_to_its_timer():
+    s = ServerSession(ServerSessionConfig(clock_offset_s=0.0, min_frame_interval_s=0.1))
+    assert s.pose_received(0.0, 0.0, *_pose(0.0)) is not None
+    assert s.frame_encoded(0.01, "f0", True, 0.01) is None
+    assert s.timer() is None
+    for k in range(1, 20):                                   # a flood of poses within the interval
+        assert s.pose_received(0.01 + k * 1e-3, 0.01 + k * 1e-3, *_pose(0.0)) is None
+    assert s.timer() == pytest.approx(0.1)
+    assert s.handle_timer(0.05) is None
+    d = s.handle_timer(0.1)
+    assert d is not None and d.started == 0.1 and s.timer() is None
+    assert s.counters.poses == 20
+
+
+def test_server_rejects_bad_config():
+    with pytest.raises(ValueError, match="downlink_s"):
+        ServerSessionConfig(downlink_s=-1)
+    with pytest.raises(ValueError, match="queue_frames"):
+        ServerSessionConfig(queue_frames=0)
+
+
+# -------------------------------------------------------------------------------------------- client
+
+def test_client_waits_for_a_self_contained_frame_and_asks_on_evidence_only():
+    c = ClientSession(reference_timeout_s=1.0)
+    c.connected(0.0)
+    assert c.tick(0.5) is None                                # nothing arrived: no request
+    assert c.frame_received(0.6, 3, self_contained=False) is False     # joined mid-chain: skip
+    r = c.tick(0.6)
+    assert isinstance(r, RequestReference) and "self-contained" in r.reason
+    assert c.frame_received(0.7, 4, self_contained=False) is False
+    assert c.tick(0.7) is None                                # asked 0.1 s ago
+    assert c.frame_received(1.7, 5, self_contained=False) is False
+    assert c.tick(1.7) is not None                            # still needed, timeout passed: ask again
+    assert c.frame_received(1.8, 6, self_contained=True) is True
+    assert c.frame_processed(1.8, True, needs_reference=False) is None
+    assert c.frame_received(1.9, 7, self_contained=False) is True
+    assert c.frame_processed(1.9, True, needs_reference=False) is None
+    k = c.counters
+    assert (k.frames_received, k.frames_skipped, k.frames_applied, k.reference_requests) == (5, 3, 2, 2)
+
+
+def test_client_loss_and_rejection():
+    c = ClientSession(reference_timeout_s=1.0)
+    c.connected(0.0)
+    assert c.frame_received(0.0, 0, True) and c.frame_processed(0.0, True, False) is None
+    # a gap in the frame ids: what follows depends on what was lost
+    assert c.frame_received(0.1, 3, False) is False
+    assert c.counters.frames_lost == 2 and c.tick(0.1) is not None
+    assert c.frame_received(0.2, 4, True) and c.frame_processed(0.2, True, False) is None
+    # a rejected frame that leaves the method client without its reference: ask at once
+    assert c.frame_received(0.3, 5, False)
+    r = c.frame_processed(0.3, False, needs_reference=True, reason="residual needs reference 2")
+    assert r is not None and "reference 2" in r.reason and c.counters.rejections == ["residual needs reference 2"]
+    # frames dropped unread (bad bytes, overflow) count as skipped and need a self-contained frame
+    c.frames_dropped(0.4, 3, "receive queue overflowed")
+    assert c.awaiting_self_contained and c.counters.frames_skipped == 4
+
+
+# ------------------------------------------------------------------------------- one core, two drivers
+
+class _Recording(ServerSession):
+    """The server core, recording what it decided (and when)."""
+
+    log: list
+
+    def __init__(self, config=None):
+        super().__init__(config)
+        self.log = []
+
+    def _start(self, now):
+        d = super()._start(now)
+        self.log.append(("encode", d.started, d.position.tolist(), d.quat.tolist(), d.display_t, d.reference))
+        return d
+
+    def pose_received(self, now, t_client, position, quat):
+        self.log.append(("pose", now, t_client))
+        return super().pose_received(now, t_client, position, quat)
+
+    def reference_requested(self, now):
+        self.log.append(("reference", now))
+        return super().reference_requested(now)
+
+
+class _StubServer:
+    """A method server without GL: every other frame self-contained, as if each were a reference."""
+
+    def __init__(self):
+        self.frame_id, self.force = 0, False
+
+    def request_reference(self):
+        self.force = True
+
+    def encode(self, pose, t):
+        sc = self.force or self.frame_id % 3 == 0
+        self.force = False
+        p = FramePayload(Method.QUASAR, self.frame_id, FrameType.REFERENCE if sc else FrameType.RESIDUAL, 0, t,
+                         pose.position, pose.quat, b"\0" * 1000, b"", sc, FrameStats())
+        self.frame_id += 1
+        return p
+
+    def close(self):
+        pass
+
+
+class _StubClient:
+    """A method client without GL that needs a reference after a lost frame."""
+
+    needs_reference = False
+
+    def __init__(self):
+        self.last = -1
+        self.stats = {}
+
+    def receive(self, payload):
+        from quadcast.protocol.errors import ProtocolError
+        if not payload.self_contained and payload.frame_id != self.last + 1:
+            self.needs_reference = True
+            raise ProtocolError(f"frame {payload.frame_id} follows {self.last}")
+        self.needs_reference = False
+        self.last = payload.frame_id
+
+    def render(self, pose):
+        return np.zeros((2, 2, 3), np.uint8)
+
+
+def _virtual_time(loop: asyncio.AbstractEventLoop) -> None:
+    """Make `loop` run on a virtual clock: when nothing is ready, time jumps to the next timer."""
+    clock = [0.0]
+    loop.time = lambda: clock[0]
+    select = loop._selector.select
+
+    def virtual_select(timeout=None):
+        events = select(0)
+        if not events and loop._scheduled and not loop._ready:
+            clock[0] = max(clock[0], heapq.nsmallest(1, loop._scheduled)[0]._when)
+        return events
+    loop._selector.select = virtual_select
+
+
+class _FakeChannel:
+    """A channel fed by the test at exact (virtual) times; what the session sends is kept."""
+
+    peer = "test"
+
+    def __init__(self):
+        self.inbox: asyncio.Queue = asyncio.Queue()
+        self.sent: list = []
+        self.bytes_out = 0
+
+    async def recv(self):
+        return await self.inbox.get()
+
+    async def send(self, msg):
+        self.sent.append(msg)
+
+    async def close(self):
+        pass
+
+
+class _FakeWorker:
+    """A session worker that takes exactly `delay` virtual seconds per frame."""
+
+    kind, pid, death = "fake", 0, None
+
+    def __init__(self, delay: float):
+        self.delay, self.stub = delay, _StubServer()
+        self.died = asyncio.Event()
+
+    async def encode(self, position, quat, t, reference):
+        from quadcast.protocol.frame import encode_frame_payload
+        from quadcast.render.camera import Pose
+        await asyncio.sleep(self.delay)
+        if reference:
+            self.stub.request_reference()
+        p = self.stub.encode(Pose(position, quat), t)
+        return encode_frame_payload(p), p.self_contained
+
+    async def close(self):
+        pass
+
+
+@pytest.mark.parametrize("server_delay_ms", [0.0, 45.0])
+def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_delay_ms):
+    import quadcast.server.app as app
+    import quadcast.sim.replay as replay_mod
+    from quadcast.render.traces import resolve_trace
+
+    # 1. The virtual-time replay, with a lossy downlink so the client asks for references.
+    sessions = []
+    monkeypatch.setattr(replay_mod, "ServerSession", lambda cfg: sessions.append(_Recording(cfg)) or sessions[-1])
+    cfg = replay_mod.ReplayConfig(latency_ms=30, jitter_ms=15, loss=0.15, seed=3, server_delay_ms=server_delay_ms,
+                                  reference_timeout_s=0.2)
+    replay_mod.replay(resolve_trace("builtin:walk"), _StubServer(), _StubClient(), cfg, 180)
+    replayed = sessions[0].log
+    assert sum(1 for e in replayed if e[0] == "encode") > 40
+    assert any(e[0] == "reference" for e in replayed)           # the loss made the client ask
+    if server_delay_ms:
+        assert sum(1 for e in replayed if e[0] == "pose") > sum(1 for e in replayed if e[0] == "encode")
+
+    # 2. The same events, at the same times, into the live server's session (virtual clock, fake I/O).
+    session_config = cfg.server_session()
+    live_sessions = []
+    monkeypatch.setattr(app, "ServerSession", lambda c: live_sessions.append(_Recording(c)) or live_sessions[-1])
+
+    class _Session(app.Session):
+        async def _start_worker(self, hello):
+            self.worker = _FakeWorker(server_delay_ms / 1e3)
+
+    server = types.SimpleNamespace(
+        config=types.SimpleNamespace(handshake_timeout=1e9, idle_timeout=1e9, max_sessions=1, methods=("quasar",),
+                                     max_width=64, max_height=64, token="", server_hz=30.0,
+                                     session_config=lambda: session_config),
+        active=0, workers=set(), session_ended=lambda c: None)
+    events = [e for e in replayed if e[0] in ("pose", "reference")]
+    poses = {e[1]: e for e in events}
+    trace = resolve_trace("builtin:walk")
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        _virtual_time(loop)
+        channel = _FakeChannel()
+        channel.inbox.put_nowait(Hello(1, "quasar", 32, 32, 60.0))
+        at: dict[float, list] = {}          # messages arriving at the same instant keep their order
+        for e in events:
+            if e[0] == "pose":
+                p, q = trace.pose_at(trace.times[0] + e[2])
+                msg = PoseUpdate(0, e[2], p, q)
+            else:
+                msg = ReferenceRequest("test")
+            at.setdefault(e[1], []).append(msg)
+        for when, msgs in at.items():
+            loop.call_at(when, lambda m=msgs: [channel.inbox.put_nowait(x) for x in m])
+        loop.call_at(events[-1][1] + 1.0, channel.inbox.put_nowait, Bye())
+        await _Session(server, channel, 1).run()
+        return channel
+
+    loop = asyncio.new_event_loop()
+    try:
+        channel = loop.run_until_complete(main())
+    finally:
+        loop.close()
+    assert isinstance(channel.sent[0], Welcome) and any(isinstance(m, Frame) for m in channel.sent)
+    # The replay ends at its last display tick; the live session went on with what was pending then.
+    end = 179 / 60 + 1e-9
+    live = [e for e in live_sessions[0].log if e[1] <= end]
+    assert poses and live == replayed
