@@ -11,8 +11,8 @@ from quadcast.client.method import MethodClient
 from quadcast.client.stereo import STEREO_MODES, MeshStereo, StereoFrame
 from quadcast.codec.decoder import AtlasDecoder, VideoError
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.frame import FramePayload, Method
-from quadcast.protocol.quads import FrameType, LayerKind, QuadFrame, decode_quad_frame
+from quadcast.protocol.frame import FramePayload, FrameType, Method
+from quadcast.protocol.quads import LayerKind, QuadFrame, decode_quad_frame
 from quadcast.render.camera import DEFAULT_IPD_M, Camera, Frustum, Pose
 from quadcast.render.gl import gl_context
 from quadcast.render.quadcache import QuadCache
@@ -62,12 +62,12 @@ class QuasarClient(MethodClient):
         t0 = time.perf_counter()
         frame = decode_quad_frame(payload.geometry, max_quads=self.max_quads)
         ms["zstd"] = (time.perf_counter() - t0) * 1e3
-        is_reference = frame.frame_type == FrameType.REFERENCE
-        if frame.frame_type != payload.frame_type:
-            raise ProtocolError("frame payload and quad blob disagree on the frame type")
-        if not is_reference and (frame.reference_id != self.reference_id or self.cache is None):
+        is_reference = payload.frame_type == FrameType.REFERENCE
+        if is_reference and LayerKind.VISIBLE not in [layer.kind for layer in frame.layers]:
+            raise ProtocolError("reference frame has no visible layer")
+        if not is_reference and (payload.reference_id != self.reference_id or self.cache is None):
             self._needs_reference = True
-            raise ProtocolError(f"residual frame {frame.frame_id} needs reference {frame.reference_id}, "
+            raise ProtocolError(f"residual frame {payload.frame_id} needs reference {payload.reference_id}, "
                                 f"the client has {self.reference_id if self.reference_id >= 0 else 'none'}")
         t0 = time.perf_counter()
         try:
@@ -79,7 +79,7 @@ class QuasarClient(MethodClient):
         ms["video"] = (time.perf_counter() - t0) * 1e3
         if image is None:
             self._needs_reference = True
-            raise VideoError(f"frame {frame.frame_id}: the video decoder is waiting for a keyframe")
+            raise VideoError(f"frame {payload.frame_id}: the video decoder is waiting for a keyframe")
         layers = self._check_layers(frame, image.shape[1], image.shape[0])
 
         t0 = time.perf_counter()
@@ -90,7 +90,7 @@ class QuasarClient(MethodClient):
             self.cache.reset(visible.quads)
             self.reference_camera = layers[kinds.index(LayerKind.VISIBLE)][1]
             self.reference_rect = visible.atlas_rect
-            self.reference_id = frame.frame_id
+            self.reference_id = payload.frame_id
         elif LayerKind.UPDATED in kinds:
             self.cache.update(frame.layers[kinds.index(LayerKind.UPDATED)].quads)
         mesh_layers = [MeshLayer(self.cache.quads, self.reference_camera, self.reference_rect)]
@@ -110,14 +110,11 @@ class QuasarClient(MethodClient):
         self.ctx.finish()
         ms["mesh"] = (time.perf_counter() - t0) * 1e3
         self._needs_reference = False
-        self.last_frame_id = frame.frame_id
+        self.last_frame_id = payload.frame_id
         self.stats = {"ms": ms, "cache_quads": len(self.cache), "cache_bytes": self.cache.nbytes,
                       "mesh_quads": self.mesh.quad_count}
 
     def _check_layers(self, frame: QuadFrame, atlas_w: int, atlas_h: int) -> list:
-        kinds = [l.kind for l in frame.layers]
-        if frame.frame_type == FrameType.REFERENCE and LayerKind.VISIBLE not in kinds:
-            raise ProtocolError("reference frame has no visible layer")
         out = []
         for i, layer in enumerate(frame.layers):
             x, y, w, h = layer.atlas_rect

@@ -18,8 +18,10 @@ Packing, 80 bits per quad (offsets are stored separately, 16 x float16 each):
 Blob layout produced by :func:`encode_quad_frame` (all little-endian):
 
 * fixed header :data:`HEADER_STRUCT`: magic ``b"QDCQ"``, version (u16),
-  flags (u8, reserved, must be 0), frame_id (u32), frame_type (u8),
-  reference_id (u32), layer count (u8, <= 16), uncompressed payload size (u32);
+  flags (u8, reserved, must be 0), layer count (u8, <= 16), uncompressed
+  payload size (u32).  Which frame the blob belongs to, its type and its
+  reference are the frame payload header's (:mod:`quadcast.protocol.frame`),
+  said once there (version 3; version 2 repeated them here);
 * per layer :data:`LAYER_STRUCT`: kind (u8), width (u16), height (u16),
   atlas rect (4 x u16), camera (16 x f32), quad count (u32), offset count (u32);
 * exactly one zstd frame (declaring its content size) whose content is the
@@ -63,7 +65,6 @@ __all__ = [
     "NORMAL_MAX_ANGULAR_ERROR",
     "OFFSETS_PER_QUAD",
     "PACKED_BITS_PER_QUAD",
-    "FrameType",
     "LayerKind",
     "QuadFrame",
     "QuadFrameStats",
@@ -100,10 +101,10 @@ MAX_LAYERS = 16
 """Largest number of layers in one :class:`QuadFrame`."""
 
 BLOB_MAGIC = b"QDCQ"
-BLOB_VERSION = 2
+BLOB_VERSION = 3
 
-HEADER_STRUCT = struct.Struct("<4sHBIBIBI")
-"""Blob header: magic, version, flags, frame_id, frame_type, reference_id, layer count, payload size."""
+HEADER_STRUCT = struct.Struct("<4sHBBI")
+"""Blob header: magic, version, flags, layer count, payload size."""
 
 LAYER_STRUCT = struct.Struct("<BHH4H16fII")
 """Per-layer header: kind, width, height, atlas rect (x, y, w, h), camera[16], quad count, offset count."""
@@ -144,13 +145,6 @@ _NORMAL_UNIT_TOLERANCE = 1e-3
 _MAX_ZSTD_WINDOW = 1 << 27
 
 
-class FrameType(enum.IntEnum):
-    """Whether a quad frame stands alone or is a residual against an earlier frame."""
-
-    REFERENCE = 0
-    RESIDUAL = 1
-
-
 class LayerKind(enum.IntEnum):
     """Which rendered layer a :class:`QuadLayer` approximates."""
 
@@ -161,7 +155,6 @@ class LayerKind(enum.IntEnum):
     REVEALED = 4
 
 
-_FRAME_TYPE_VALUES = frozenset(int(t) for t in FrameType)
 _LAYER_KIND_VALUES = frozenset(int(k) for k in LayerKind)
 
 
@@ -541,31 +534,17 @@ class QuadLayer:
 
 @dataclass(frozen=True, eq=False)
 class QuadFrame:
-    """One server frame of quads: up to 16 layers, either a reference or a residual against ``reference_id``."""
+    """The quads of one server frame: up to 16 layers (the frame's id, type and reference are its payload's)."""
 
-    frame_id: int
-    frame_type: FrameType
-    reference_id: int
     layers: list[QuadLayer]
 
     def __post_init__(self) -> None:
-        frame_id = _u_int("QuadFrame.frame_id", self.frame_id, 0, 0xFFFFFFFF)
-        reference_id = _u_int("QuadFrame.reference_id", self.reference_id, 0, 0xFFFFFFFF)
-        try:
-            frame_type = FrameType(self.frame_type)
-        except ValueError:
-            raise ValueError(
-                f"QuadFrame.frame_type: expected one of {[int(t) for t in FrameType]}, got {self.frame_type!r}"
-            ) from None
         layers = list(self.layers)
         if len(layers) > MAX_LAYERS:
             raise ValueError(f"QuadFrame.layers: expected at most {MAX_LAYERS} layers, got {len(layers)}")
         for i, layer in enumerate(layers):
             if not isinstance(layer, QuadLayer):
                 raise ValueError(f"QuadFrame.layers[{i}]: expected a QuadLayer, got {type(layer).__name__}")
-        object.__setattr__(self, "frame_id", frame_id)
-        object.__setattr__(self, "reference_id", reference_id)
-        object.__setattr__(self, "frame_type", frame_type)
         object.__setattr__(self, "layers", layers)
 
     @property
@@ -629,10 +608,7 @@ def _encode_parts(frame: QuadFrame, level: int) -> tuple[bytes, bytes, int]:
     if raw_size > 0xFFFFFFFF:
         raise ValueError(f"encode_quad_frame: payload of {raw_size} bytes does not fit the u32 size field")
     header = [
-        HEADER_STRUCT.pack(
-            BLOB_MAGIC, BLOB_VERSION, 0, frame.frame_id, int(frame.frame_type),
-            frame.reference_id, len(frame.layers), raw_size,
-        )
+        HEADER_STRUCT.pack(BLOB_MAGIC, BLOB_VERSION, 0, len(frame.layers), raw_size)
     ]
     for layer in frame.layers:
         header.append(
@@ -714,17 +690,13 @@ def decode_quad_frame(
         raise ProtocolError(f"blob: expected bytes-like data, got {type(data).__name__}") from None
     if len(view) < HEADER_STRUCT.size:
         raise ProtocolError(f"truncated blob: header needs {HEADER_STRUCT.size} bytes, got {len(view)}")
-    magic, version, flags, frame_id, frame_type, reference_id, layer_count, payload_size = (
-        HEADER_STRUCT.unpack_from(view, 0)
-    )
+    magic, version, flags, layer_count, payload_size = HEADER_STRUCT.unpack_from(view, 0)
     if magic != BLOB_MAGIC:
         raise ProtocolError(f"header.magic: expected {BLOB_MAGIC!r}, got {bytes(magic)!r}")
     if version != BLOB_VERSION:
         raise ProtocolError(f"header.version: expected {BLOB_VERSION}, got {version}")
     if flags != 0:
         raise ProtocolError(f"header.flags: expected 0 (no flags are defined), got {flags:#04x}")
-    if frame_type not in _FRAME_TYPE_VALUES:
-        raise ProtocolError(f"header.frame_type: expected one of {[int(t) for t in FrameType]}, got {frame_type}")
     if layer_count > MAX_LAYERS:
         raise ProtocolError(f"header.layer_count: expected at most {MAX_LAYERS}, got {layer_count}")
     layers_end = HEADER_STRUCT.size + layer_count * LAYER_STRUCT.size
@@ -822,6 +794,4 @@ def decode_quad_frame(
             raise ProtocolError(f"layer[{i}]: {exc}") from None
         q0, o0 = q1, o1
 
-    return QuadFrame(
-        frame_id=frame_id, frame_type=FrameType(frame_type), reference_id=reference_id, layers=layers
-    )
+    return QuadFrame(layers=layers)

@@ -115,7 +115,7 @@ class QuadStreamServer(MethodServer):
         ms.update(quads=timings.quads, merge=timings.merge, gather=timings.gather)
 
         t0 = time.perf_counter()
-        qframe = QuadFrame(self.frame_id, FrameType.REFERENCE, self.frame_id, layers)
+        qframe = QuadFrame(layers)
         geometry = encode_quad_frame(qframe, s.zstd_level)
         ms["zstd"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()

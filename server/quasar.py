@@ -157,7 +157,7 @@ class QuasarServer(MethodServer):
 
         t0 = time.perf_counter()
         frame_type = FrameType.REFERENCE if is_reference else FrameType.RESIDUAL
-        qframe = QuadFrame(self.frame_id, frame_type, self.reference_id, layers)
+        qframe = QuadFrame(layers)
         geometry = encode_quad_frame(qframe, s.zstd_level)
         ms["zstd"] = (time.perf_counter() - t0) * 1e3
 

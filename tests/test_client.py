@@ -113,7 +113,7 @@ def _patch_blob(blob: bytes, layer: int | None = None, **fields) -> bytes:
     """The quad blob with header (layer None) or layer-header fields replaced (a callable maps the old value)."""
     data = bytearray(blob)
     if layer is None:
-        names = ["magic", "version", "flags", "frame_id", "frame_type", "reference_id", "layer_count", "size"]
+        names = ["magic", "version", "flags", "layer_count", "size"]
         st, off = HEADER_STRUCT, 0
     else:
         names = ["kind", "width", "height", *[f"r{i}" for i in range(4)], *[f"c{i}" for i in range(16)],
@@ -134,10 +134,9 @@ BAD = {
     "truncated blob": (lambda p: with_(p, geometry=p.geometry[:len(p.geometry) // 2]), ProtocolError, "zstd|truncated"),
     "truncated video": (lambda p: with_(p, video=p.video[:len(p.video) // 3]), VideoError, "access unit"),
     "empty video": (lambda p: with_(p, video=b""), VideoError, "empty access unit"),
-    "blob of another frame type": (lambda p: with_(p, frame_type=1 - int(p.frame_type)), ProtocolError,
-                                   "disagree on the frame type"),
-    "residual of an unknown reference": (lambda p: with_(p, geometry=_patch_blob(p.geometry, reference_id=77)),
-                                         ProtocolError, "needs reference 77"),
+    "residual blob sent as a reference": (lambda p: with_(p, frame_type=FrameType.REFERENCE), ProtocolError,
+                                          "reference frame has no visible layer"),
+    "residual of an unknown reference": (lambda p: with_(p, reference_id=77), ProtocolError, "needs reference 77"),
 }
 
 

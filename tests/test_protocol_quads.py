@@ -21,7 +21,6 @@ from quadcast.protocol.quads import (
     NORMAL_MAX_ANGULAR_ERROR,
     OFFSETS_PER_QUAD,
     PACKED_BITS_PER_QUAD,
-    FrameType,
     LayerKind,
     QuadFrame,
     QuadLayer,
@@ -73,7 +72,7 @@ def small_frame(seed: int = 0) -> QuadFrame:
         QuadLayer(LayerKind.VISIBLE, 64, 48, np.arange(16), (0, 0, 64, 48), random_quads(rng, 5, 64, 48)),
         QuadLayer(LayerKind.HIDDEN, 32, 32, np.ones(16), (64, 0, 32, 32), random_quads(rng, 3, 32, 32)),
     ]
-    return QuadFrame(frame_id=42, frame_type=FrameType.RESIDUAL, reference_id=40, layers=layers)
+    return QuadFrame(layers=layers)
 
 
 def split_blob(blob: bytes, layer_count: int) -> tuple[bytes, bytes]:
@@ -87,9 +86,8 @@ def rebuild_blob(headers: bytes, raw: bytes) -> bytes:
     return headers + zstandard.ZstdCompressor(level=3).compress(raw)
 
 
-def make_header(*, magic=b"QDCQ", version=BLOB_VERSION, flags=0, frame_id=1, frame_type=0, reference_id=0,
-                layer_count=1, payload_size=0) -> bytes:
-    return HEADER_STRUCT.pack(magic, version, flags, frame_id, frame_type, reference_id, layer_count, payload_size)
+def make_header(*, magic=b"QDCQ", version=BLOB_VERSION, flags=0, layer_count=1, payload_size=0) -> bytes:
+    return HEADER_STRUCT.pack(magic, version, flags, layer_count, payload_size)
 
 
 def make_layer(*, kind=0, width=64, height=64, quads=0, offsets=0) -> bytes:
@@ -97,7 +95,6 @@ def make_layer(*, kind=0, width=64, height=64, quads=0, offsets=0) -> bytes:
 
 
 def assert_frames_equal(a: QuadFrame, b: QuadFrame) -> None:
-    assert (a.frame_id, a.frame_type, a.reference_id) == (b.frame_id, b.frame_type, b.reference_id)
     assert len(a.layers) == len(b.layers)
     for la, lb in zip(a.layers, b.layers):
         assert (la.kind, la.width, la.height, la.atlas_rect) == (lb.kind, lb.width, lb.height, lb.atlas_rect)
@@ -157,12 +154,7 @@ def quad_layers(draw) -> QuadLayer:
 
 @st.composite
 def quad_frames(draw) -> QuadFrame:
-    return QuadFrame(
-        frame_id=draw(st.integers(0, 2**32 - 1)),
-        frame_type=draw(st.sampled_from(list(FrameType))),
-        reference_id=draw(st.integers(0, 2**32 - 1)),
-        layers=draw(st.lists(quad_layers(), max_size=3)),
-    )
+    return QuadFrame(layers=draw(st.lists(quad_layers(), max_size=3)))
 
 
 # ---------------------------------------------------------------------------
@@ -178,10 +170,10 @@ def test_blob_round_trip(frame: QuadFrame, level: int) -> None:
 
 
 def test_empty_frame_round_trip() -> None:
-    frame = QuadFrame(frame_id=0, frame_type=FrameType.REFERENCE, reference_id=0, layers=[])
+    frame = QuadFrame(layers=[])
     assert_frames_equal(frame, decode_quad_frame(encode_quad_frame(frame)))
     layer = QuadLayer(LayerKind.REVEALED, 8, 8, np.zeros(16), (0, 0, 8, 8), QuadSet.empty())
-    frame = QuadFrame(frame_id=1, frame_type=FrameType.REFERENCE, reference_id=0, layers=[layer])
+    frame = QuadFrame(layers=[layer])
     assert_frames_equal(frame, decode_quad_frame(bytearray(encode_quad_frame(frame))))
 
 
@@ -340,11 +332,9 @@ def test_layer_and_frame_validation() -> None:
         QuadLayer(9, 16, 16, np.zeros(16), (0, 0, 1, 1), quads)
     layer = QuadLayer(LayerKind.VISIBLE, 16, 16, np.zeros(16), (0, 0, 1, 1), quads)
     with pytest.raises(ValueError, match="at most 16 layers, got 17"):
-        QuadFrame(0, FrameType.REFERENCE, 0, [layer] * 17)
-    with pytest.raises(ValueError, match="frame_id"):
-        QuadFrame(2**32, FrameType.REFERENCE, 0, [layer])
-    with pytest.raises(ValueError, match="frame_type"):
-        QuadFrame(0, 5, 0, [layer])
+        QuadFrame([layer] * 17)
+    with pytest.raises(ValueError, match=r"layers\[0\]: expected a QuadLayer"):
+        QuadFrame(["not a layer"])
 
 
 # ---------------------------------------------------------------------------
@@ -364,7 +354,7 @@ def test_trailing_bytes_rejected() -> None:
     blob = encode_quad_frame(small_frame())
     with pytest.raises(ProtocolError, match="payload: 1 trailing bytes after the zstd frame"):
         decode_quad_frame(blob + b"\x00")
-    empty = encode_quad_frame(QuadFrame(0, FrameType.REFERENCE, 0, []))
+    empty = encode_quad_frame(QuadFrame([]))
     with pytest.raises(ProtocolError, match="1 trailing bytes"):
         decode_quad_frame(empty + b"\x00")
 
@@ -443,7 +433,6 @@ def test_decoded_columns_are_validated(tamper: str, pattern: str) -> None:
         (make_header(magic=b"QDCX"), r"header\.magic: expected b'QDCQ', got b'QDCX'"),
         (make_header(version=BLOB_VERSION + 1), rf"header\.version: expected {BLOB_VERSION}, got {BLOB_VERSION + 1}"),
         (make_header(flags=4), r"header\.flags"),
-        (make_header(frame_type=7), r"header\.frame_type.*got 7"),
         (make_header(layer_count=17), r"header\.layer_count: expected at most 16, got 17"),
         (make_header(layer_count=1) + make_layer(kind=9), r"layer\[0\]\.kind.*got 9"),
         (make_header(layer_count=1) + make_layer(width=0), r"layer\[0\].*0x64"),
@@ -562,7 +551,7 @@ def smooth_frame() -> QuadFrame:
         offsets=np.zeros((0, 16)),
     )
     layer = QuadLayer(LayerKind.VISIBLE, 512, 512, np.zeros(16), (0, 0, 512, 512), quads)
-    return QuadFrame(frame_id=1, frame_type=FrameType.REFERENCE, reference_id=1, layers=[layer])
+    return QuadFrame(layers=[layer])
 
 
 def test_columnar_layout_beats_interleaved() -> None:
