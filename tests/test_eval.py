@@ -23,6 +23,8 @@ def test_same_seed_gives_identical_summary(tmp_path):
     a = run_eval(spec, tmp_path / "a")
     b = run_eval(spec, tmp_path / "b")
     assert strip_wallclock(a) == strip_wallclock(b)
+    # quasar's residual frames (reference every 5) are smaller than its references
+    assert 0 < a["residual_to_reference_bytes"] < 1
     ja, jb = (json.loads((tmp_path / d / "summary.json").read_text()) for d in "ab")
     assert {k: v for k, v in ja.items() if k not in WALLCLOCK_KEYS} == \
         {k: v for k, v in jb.items() if k not in WALLCLOCK_KEYS}

@@ -243,3 +243,12 @@ def test_splitter_returns_whole_wire_messages():
     assert out == wire
     # the splitter does not look at types or bodies
     assert MessageSplitter().feed(_raw(200, b"??")) == [_raw(200, b"??")]
+
+
+def test_residual_to_reference_bytes_takes_any_iterable():
+    from quadcast.protocol.frame import residual_to_reference_bytes
+    frames = [(FrameType.REFERENCE, 100), (FrameType.RESIDUAL, 30), (FrameType.RESIDUAL, 50),
+              (FrameType.REFERENCE, 300)]
+    assert residual_to_reference_bytes(frames) == pytest.approx(40 / 200)
+    assert residual_to_reference_bytes(iter(frames)) == pytest.approx(40 / 200)
+    assert residual_to_reference_bytes(f for f in frames if f[0] == FrameType.REFERENCE) is None
