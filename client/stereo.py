@@ -18,7 +18,7 @@ edge ghosting) -- are re-rendered by the caller's draw function, culled everywhe
 where the reprojection is kept), and composited with the reprojected pixels.
 
 On the client (`MeshStereo`, used by `QuasarClient.stereo_frame` / `render_stereo`): the dominant eye is drawn
-from the quad mesh into the client's `MeshView`, whose colour and view-position targets are the synthesizer's
+from the quad mesh into the client's `MeshView`, whose colour and linear-depth targets are the synthesizer's
 input; mode 2 re-renders the masked pixels of the other eye from the same mesh. Clients without depth (ATW,
 MeshWarp) only support rendering both eyes (`stereo_pair(..., "both")`).
 
@@ -384,7 +384,7 @@ class StereoFrame:
 
 class MeshStereo:
     """Stereo for a client that shows a `quadcast.render.quadmesh.QuadMesh`: the dominant eye is drawn into the client's
-    `MeshView`, whose colour and view-position targets feed the `StereoSynthesizer`; mode 2 re-renders the masked
+    `MeshView`, whose colour and linear-depth targets feed the `StereoSynthesizer`; mode 2 re-renders the masked
     pixels of the other eye from the same mesh into a second `MeshView` (`MeshView.render` with `cull=`)."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int, ipd: float = DEFAULT_IPD_M,
@@ -394,7 +394,7 @@ class MeshStereo:
         self.other_view = MeshView(ctx, width, height)
         # Warm-up: drivers compile shaders on first use; keep that out of the first frame's timings.
         probe = Camera.perspective(Pose([0.0, 0.0, 0.0]), width, height)
-        self.synth.synthesize(self.other_view.color, self.other_view.position, probe)
+        self.synth.synthesize(self.other_view.color, self.other_view.view_depth, probe)
         ctx.finish()
 
     def eye_cameras(self, head: Camera) -> tuple[Camera, Camera]:
@@ -427,7 +427,7 @@ class MeshStereo:
             other_img = rendered
         else:
             result, ms["synthesize"] = _timed(
-                ctx, lambda: self.synth.synthesize(view.color, view.position, dominant_cam))
+                ctx, lambda: self.synth.synthesize(view.color, view.view_depth, dominant_cam))
             if mode == "rerender":
                 def draw(camera: Camera, cull: CullFn) -> moderngl.Texture:
                     self.other_view.render(mesh, camera, atlas, cull=cull)
@@ -441,7 +441,7 @@ class MeshStereo:
 
     def release(self) -> None:
         self.synth.release()
-        for obj in (self.other_view.fbo, self.other_view.color, self.other_view.position, self.other_view.depth):
+        for obj in (self.other_view.fbo, self.other_view.color, self.other_view.view_depth, self.other_view.depth):
             obj.release()
 
 

@@ -1,11 +1,12 @@
 #version 430
-// Mesh reconstruction: every quad becomes 4 sub-quads = 16 vertices (view space of its layer camera, atlas uv)
-// and 24 indices. One invocation per quad.
+// Mesh reconstruction of one layer: a quad with depth offsets becomes 4 sub-quads = 16 vertices (view space of
+// its layer camera, atlas uv) and 24 indices; a flattened quad (a plane, no offsets) one quad = 4 vertices and 6
+// indices. One invocation per quad; where each quad's vertices go (its indices: 3/2 of that) is decided on the CPU.
 layout(local_size_x = 64) in;
 #include "quad.glsl"
 
 struct Quad {            // as uploaded by render/quadmesh.py
-    uvec4 head;          // x, y, size_log2, unused
+    uvec4 head;          // x, y, size_log2, first vertex | flattened << 31
     vec4 normal_depth;   // view-space normal, depth of the plane on the centre ray
     vec4 off[4];         // 16 depth offsets (0 when flattened)
 };
@@ -14,19 +15,33 @@ layout(std430, binding = 1) writeonly buffer Vertices { float vertices[]; };  //
 layout(std430, binding = 2) writeonly buffer Indices { uint indices[]; };
 
 uniform uint u_count;
-uniform uint u_base_quad;     // where this layer's quads start in the shared buffers
 uniform vec4 u_atlas_rect;    // x, y, w, h of this layer's colour in the atlas (pixels, top-left origin)
 uniform vec2 u_atlas_size;
 
 void main() {
     uint i = gl_GlobalInvocationID.x;
     if (i >= u_count) return;
-    Quad q = quads[u_base_quad + i];
+    Quad q = quads[i];
     float size = float(1u << q.head.z);
     vec2 origin = vec2(q.head.xy);
     vec3 n = q.normal_depth.xyz;
     float d = plane_d(n, origin + 0.5 * size, q.normal_depth.w);
-    uint v0 = 16u * (u_base_quad + i);
+    uint v0 = q.head.w & 0x7fffffffu;
+    if ((q.head.w >> 31) != 0u) {        // flattened: the whole quad, one plane
+        for (uint c = 0u; c < 4u; ++c) {
+            vec2 p = origin + size * vec2(float(c & 1u), float(c >> 1));
+            vec3 r = normalize(ray_dir(p));
+            vec3 pos = r * max(ray_plane_t(r, n, d), u_near);
+            vec2 uv = (u_atlas_rect.xy + p / vec2(u_size) * u_atlas_rect.zw) / u_atlas_size;
+            uint v = (v0 + c) * 5u;
+            vertices[v] = pos.x; vertices[v + 1u] = pos.y; vertices[v + 2u] = pos.z;
+            vertices[v + 3u] = uv.x; vertices[v + 4u] = uv.y;
+        }
+        uint k = v0 / 2u * 3u;
+        indices[k] = v0; indices[k + 1u] = v0 + 2u; indices[k + 2u] = v0 + 1u;
+        indices[k + 3u] = v0 + 1u; indices[k + 4u] = v0 + 2u; indices[k + 5u] = v0 + 3u;
+        return;
+    }
     for (uint s = 0u; s < 4u; ++s) {
         for (uint c = 0u; c < 4u; ++c) {
             vec2 p = origin + 0.5 * size * vec2(float((s & 1u) + (c & 1u)), float((s >> 1) + (c >> 1)));
@@ -38,7 +53,7 @@ void main() {
             vertices[v] = pos.x; vertices[v + 1u] = pos.y; vertices[v + 2u] = pos.z;
             vertices[v + 3u] = uv.x; vertices[v + 4u] = uv.y;
         }
-        uint k = (u_base_quad + i) * 24u + 6u * s;
+        uint k = v0 / 2u * 3u + 6u * s;
         uint b = v0 + 4u * s;
         indices[k] = b; indices[k + 1u] = b + 2u; indices[k + 2u] = b + 1u;
         indices[k + 3u] = b + 1u; indices[k + 4u] = b + 2u; indices[k + 5u] = b + 3u;

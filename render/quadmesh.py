@@ -2,7 +2,9 @@
 
 Shared by the client (which displays the mesh) and the server (which renders the client's cached mesh to find
 what a residual frame must add). Each `MeshLayer` is one layer's `QuadSet` with the camera it was generated from
-and where its colour sits in the video atlas.
+and where its colour sits in the video atlas. A flattened quad (a plane) becomes one quad of the mesh, a quad with
+depth offsets four sub-quads. Each layer keeps its own buffers, so a layer whose quads did not change since the
+last build (a client's cache that a residual frame left as it was) is not rebuilt.
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from quadcast.render.renderer import CullFn, read_texture
 
 HERE = Path(__file__).resolve().parent
 QUAD_FLOATS = 24  # uvec4 head, vec4 normal+depth, 4 x vec4 offsets
+FLAT_VERTICES, FULL_VERTICES = 4, 16     # a flattened quad is one quad of the mesh, one with offsets four
 
 
 @dataclass
@@ -31,95 +34,120 @@ class MeshLayer:
     depth_scale: float = 1.0
 
 
-def quads_to_gpu(quads: QuadSet) -> np.ndarray:
-    """The (N, 24) float32 rows the mesh and gather shaders use (offsets zero for flattened quads)."""
+def quads_to_gpu(quads: QuadSet) -> tuple[np.ndarray, int]:
+    """The (N, 24) float32 rows the mesh shader reads (offsets zero for flattened quads), each quad's head.w
+    holding its first vertex (its indices start at 3/2 of that) and whether it is flattened; and the vertex count."""
     n = len(quads)
     rows = np.zeros((n, QUAD_FLOATS), np.float32)
     head = rows[:, :4].view(np.uint32)
     head[:, 0], head[:, 1], head[:, 2] = quads.x, quads.y, quads.size_log2
+    flat = quads.flattened | (quads.offset_index < 0)
+    counts = np.where(flat, FLAT_VERTICES, FULL_VERTICES).astype(np.int64)
+    starts = np.cumsum(counts) - counts
+    total = int(counts.sum())
+    if total >= 1 << 31:
+        raise ValueError(f"quad mesh: {total} vertices do not fit a 31-bit vertex index")
+    head[:, 3] = starts.astype(np.uint32) | (flat.astype(np.uint32) << np.uint32(31))
     rows[:, 4:7] = quads.normal
     rows[:, 7] = quads.depth
     idx = quads.offset_index
-    has = idx >= 0
+    has = ~flat
     rows[has, 8:24] = quads.offsets[idx[has]].astype(np.float32)
-    return rows
+    return rows, total
+
+
+class _LayerBuffers:
+    """One layer's quads, vertices, indices and vertex array; grown as needed."""
+
+    def __init__(self) -> None:
+        self.quads: QuadSet | None = None   # what the buffers were built from
+        self.key = None
+        self.quad_capacity = self.vertex_capacity = 0
+        self.indices = 0
+
+    def reserve(self, ctx: moderngl.Context, prog, quads: int, vertices: int) -> None:
+        if quads <= self.quad_capacity and vertices <= self.vertex_capacity:
+            return
+        if self.quad_capacity:
+            for b in (self.vao, self.quad_buf, self.vertex_buf, self.index_buf):
+                b.release()
+        self.quad_capacity = max(quads, 2 * self.quad_capacity, 256)
+        self.vertex_capacity = max(vertices, 2 * self.vertex_capacity, 256 * FLAT_VERTICES)
+        self.quad_buf = ctx.buffer(reserve=self.quad_capacity * QUAD_FLOATS * 4)
+        self.vertex_buf = ctx.buffer(reserve=self.vertex_capacity * 5 * 4)
+        self.index_buf = ctx.buffer(reserve=self.vertex_capacity * 3 // 2 * 4)
+        self.vao = ctx.vertex_array(prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")], self.index_buf)
 
 
 class QuadMesh:
-    """GPU buffers holding the layered mesh; `build` refills them, `draw` renders them."""
+    """GPU buffers holding the layered mesh; `build` refills them (the layers that changed), `draw` renders them."""
 
-    def __init__(self, ctx: moderngl.Context, capacity: int = 1 << 16):
+    def __init__(self, ctx: moderngl.Context):
         self.ctx = ctx
         self.builder = compute(ctx, HERE / "quad_mesh.comp")
         self.prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh.frag.glsl")
-        self.capacity = 0
-        self.layers: list[tuple[MeshLayer, int, int]] = []  # layer, first quad, count
-        self._reserve(capacity)
-
-    def _reserve(self, quads: int) -> None:
-        if quads <= self.capacity:
-            return
-        cap = max(quads, 2 * self.capacity, 1024)
-        for name in ("quad_buf", "vertex_buf", "index_buf", "vao"):
-            if hasattr(self, name):
-                getattr(self, name).release()
-        self.quad_buf = self.ctx.buffer(reserve=cap * QUAD_FLOATS * 4)
-        self.vertex_buf = self.ctx.buffer(reserve=cap * 16 * 5 * 4)
-        self.index_buf = self.ctx.buffer(reserve=cap * 24 * 4)
-        self.vao = self.ctx.vertex_array(self.prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")],
-                                         self.index_buf)
-        self.capacity = cap
-
-    @property
-    def quad_count(self) -> int:
-        return sum(n for _, _, n in self.layers)
+        self._buffers: list[_LayerBuffers] = []
+        self.layers: list[tuple[MeshLayer, _LayerBuffers]] = []
+        self.quad_count = 0
 
     def build(self, layers: list[MeshLayer], atlas_size: tuple[int, int]) -> None:
-        """Upload every layer's quads and generate the mesh (one compute dispatch per layer)."""
-        total = sum(len(l.quads) for l in layers)
-        self._reserve(total)
+        """Generate every layer's mesh (one compute dispatch per layer), but for a layer whose quads are the very
+        same `QuadSet`, camera and atlas place as at the previous build."""
+        while len(self._buffers) < len(layers):
+            self._buffers.append(_LayerBuffers())
         self.layers = []
-        if total == 0:
-            return
-        self.quad_buf.write(np.concatenate([quads_to_gpu(l.quads) for l in layers]).tobytes())
-        self.quad_buf.bind_to_storage_buffer(0)
-        self.vertex_buf.bind_to_storage_buffer(1)
-        self.index_buf.bind_to_storage_buffer(2)
-        first = 0
-        for layer in layers:
-            n = len(layer.quads)
-            if n:
-                f = layer.camera.frustum
-                set_uniforms(self.builder, u_frustum=(f.left, f.right, f.bottom, f.top), u_near=f.near,
-                             u_far=f.far, u_size=(layer.camera.width, layer.camera.height), u_count=n,
-                             u_base_quad=first, u_atlas_rect=tuple(float(v) for v in layer.atlas_rect),
-                             u_atlas_size=(float(atlas_size[0]), float(atlas_size[1])))
-                self.builder.run((n + 63) // 64)
-                self.layers.append((layer, first, n))
-            first += n
+        self.quad_count = sum(len(layer.quads) for layer in layers)
+        for layer, buf in zip(layers, self._buffers):
+            key = (layer.camera.to_array().tobytes(), tuple(layer.atlas_rect), tuple(atlas_size))
+            if buf.quads is not layer.quads or buf.key != key:
+                self._generate(layer, buf, atlas_size)
+                buf.quads, buf.key = layer.quads, key
+            if buf.indices:
+                self.layers.append((layer, buf))
+        for buf in self._buffers[len(layers):]:
+            buf.quads = None
         self.ctx.memory_barrier()
+
+    def _generate(self, layer: MeshLayer, buf: _LayerBuffers, atlas_size: tuple[int, int]) -> None:
+        n = len(layer.quads)
+        rows, vertices = quads_to_gpu(layer.quads)
+        buf.indices = vertices * 3 // 2
+        if not n:
+            return
+        buf.reserve(self.ctx, self.prog, n, vertices)
+        buf.quad_buf.write(rows.tobytes())
+        buf.quad_buf.bind_to_storage_buffer(0)
+        buf.vertex_buf.bind_to_storage_buffer(1)
+        buf.index_buf.bind_to_storage_buffer(2)
+        f = layer.camera.frustum
+        set_uniforms(self.builder, u_frustum=(f.left, f.right, f.bottom, f.top), u_near=f.near, u_far=f.far,
+                     u_size=(layer.camera.width, layer.camera.height), u_count=n,
+                     u_atlas_rect=tuple(float(v) for v in layer.atlas_rect),
+                     u_atlas_size=(float(atlas_size[0]), float(atlas_size[1])))
+        self.builder.run((n + 63) // 64)
 
     def draw(self, camera: Camera, atlas: moderngl.Texture) -> None:
         """Render the mesh from `camera` into the bound framebuffer (depth test on)."""
         atlas.use(0)
         set_uniforms(self.prog, u_atlas=0, u_proj=gl_matrix(camera.projection_matrix()))
         view = camera.view_matrix()
-        for layer, first, n in self.layers:
+        for layer, buf in self.layers:
             set_uniforms(self.prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()),
                          u_depth_scale=float(layer.depth_scale))
-            self.vao.render(moderngl.TRIANGLES, vertices=24 * n, first=24 * first)
+            buf.vao.render(moderngl.TRIANGLES, vertices=buf.indices)
 
 
 class MeshView:
-    """An off-screen target for drawing a `QuadMesh`: colour, view position and depth at one size."""
+    """An off-screen target for drawing a `QuadMesh` at one size: colour (alpha 1 where drawn), linear view depth
+    (R32F, 0 where nothing was drawn) and the depth buffer."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int, clear_color=(0.0, 0.0, 0.0)):
         self.ctx, self.width, self.height = ctx, width, height
         self.color = ctx.texture((width, height), 4)
-        self.position = ctx.texture((width, height), 4, dtype="f4")
-        self.position.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self.view_depth = ctx.texture((width, height), 1, dtype="f4")
+        self.view_depth.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.depth = ctx.depth_texture((width, height))
-        self.fbo = ctx.framebuffer([self.color, self.position], self.depth)
+        self.fbo = ctx.framebuffer([self.color, self.view_depth], self.depth)
         self.clear_color = clear_color
 
     def render(self, mesh: QuadMesh, camera: Camera, atlas: moderngl.Texture, cull: CullFn | None = None) -> None:
@@ -139,5 +167,6 @@ class MeshView:
         return read_texture(self.color, 4, "u1")[..., :3]
 
     def read_depth(self) -> np.ndarray:
-        pos = read_texture(self.position, 4, "f4")
-        return np.where(pos[..., 3] > 0, -pos[..., 2], np.inf).astype(np.float32)
+        """Linear view depth, top row first; inf where nothing was drawn."""
+        depth = read_texture(self.view_depth, 1, "f4")
+        return np.where(depth > 0, depth, np.inf).astype(np.float32)

@@ -23,30 +23,60 @@ def wide_camera(camera: Camera, fovy_deg: float = 120.0, scale: float = 0.5) -> 
     return Camera(camera.pose, f, w, h)
 
 
-class LayerRenderer:
-    """Renders the visible layer and the EDP hidden layers into pre-allocated G-buffers."""
+def resized(camera: Camera, width: int, height: int) -> Camera:
+    """The same view (pose and frustum) as an image of another size."""
+    return Camera(camera.pose, camera.frustum, width, height)
 
-    def __init__(self, renderer: DeferredRenderer, width: int, height: int, layers: int = 4):
+
+class LayerRenderer:
+    """Renders the visible layer and the EDP hidden layers into pre-allocated G-buffers.
+
+    The hidden layers are rendered -- peeled, lit and later turned into quads -- at `hidden_size`, the size their
+    colour has in the video atlas (QUASAR sends them at reduced resolution), not at the visible layer's: peeling is
+    the server's most expensive pass, and its cost goes with the pixel count. They peel from a copy of the visible
+    layer's geometry at that size."""
+
+    def __init__(self, renderer: DeferredRenderer, width: int, height: int, layers: int = 4,
+                 hidden_size: tuple[int, int] | None = None):
         if layers < 1:
             raise ValueError(f"need at least 1 layer, got {layers}")
         self.renderer, self.ctx = renderer, renderer.ctx
-        self.gbuffers = [GBuffer(self.ctx, width, height) for _ in range(layers)]
+        self.size = (width, height)
+        self.hidden_size = hw, hh = hidden_size or (width, height)
+        self.visible = GBuffer(self.ctx, width, height)
+        self.visible_small = GBuffer(self.ctx, hw, hh) if layers > 1 and (hw, hh) != (width, height) else None
+        self.hidden = [GBuffer(self.ctx, hw, hh) for _ in range(layers - 1)]
         self.peel = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl")
 
+    def hidden_camera(self, camera: Camera) -> Camera:
+        return resized(camera, *self.hidden_size)
+
     def render(self, camera: Camera, t: float, viewcell_radius: float, connectivity: float = 0.001,
-               max_radius_px: int = 48) -> list[GBuffer]:
+               max_radius_deg: float = 5.9) -> list[GBuffer]:
+        """The visible layer (at the camera's size) and the hidden layers (at `hidden_size`, seen by
+        `hidden_camera(camera)`). A hidden fragment is searched for a visible edge within the disc it can shift
+        by inside the view sphere, at most `max_radius_deg` of the view across."""
         r = self.renderer
-        layers = [r.gbuffer(camera, t, target=self.gbuffers[0])]
-        focal_px = camera.focal_px[1]  # fy (fx for square pixels)
-        for gb in self.gbuffers[1:]:
-            layers[-1].position.use(4)
-            layers[0].position.use(5)
+        layers = [r.gbuffer(camera, t, target=self.visible)]
+        if not self.hidden:
+            return layers
+        small = self.hidden_camera(camera)
+        prev = layers[0]
+        if self.visible_small is not None:
+            prev = r.geometry_pass(small, t, target=self.visible_small)
+        visible = prev
+        focal_px = small.focal_px[1]  # fy (fx for square pixels)
+        max_radius_px = max(1, int(round(focal_px * np.tan(np.radians(max_radius_deg)))))
+        for gb in self.hidden:
+            prev.position.use(4)
+            visible.position.use(5)
             set_uniforms(self.peel, u_prev_position=4, u_visible_position=5, u_focal_px=focal_px,
                          u_viewcell_radius=float(viewcell_radius), u_connectivity=float(connectivity),
-                         u_max_radius_px=int(max_radius_px))
-            r.geometry_pass(camera, t, target=gb, prog=self.peel)
+                         u_max_radius_px=max_radius_px)
+            r.geometry_pass(small, t, target=gb, prog=self.peel)
             r.lighting_pass(gb, t)
             layers.append(gb)
+            prev = gb
         return layers
 
 

@@ -55,14 +55,17 @@ class QuasarServer(MethodServer):
     def __init__(self, renderer: DeferredRenderer, settings: QuasarSettings | None = None):
         self.s = s = settings or QuasarSettings()
         self.renderer, self.ctx = renderer, renderer.ctx
-        self.layer_renderer = LayerRenderer(renderer, s.width, s.height, s.layers)
-        self.generator = QuadGenerator(self.ctx, s.width, s.height)
         probe = wide_camera(self.camera_for(Pose([0, 0, 0])), s.wide_fovy_deg, s.wide_scale)
-        self.wide_generator = QuadGenerator(self.ctx, probe.width, probe.height)
-        self.wide_gbuffer = GBuffer(self.ctx, probe.width, probe.height)
-        self.reference_gbuffer = GBuffer(self.ctx, s.width, s.height)
         self.layout = AtlasLayout.for_view(s.width, s.height, s.layers - 1, (probe.width, probe.height),
                                            s.hidden_scale)
+        hidden_size = self.layout.hidden[0][2:] if self.layout.hidden else (s.width, s.height)
+        self.layer_renderer = LayerRenderer(renderer, s.width, s.height, s.layers, hidden_size)
+        self._generators: dict[tuple[int, int], QuadGenerator] = {}
+        self.generator = self.generator_for(s.width, s.height)
+        self.wide_generator = self.generator_for(probe.width, probe.height)
+        self.hidden_generator = self.generator_for(*hidden_size)
+        self.wide_gbuffer = GBuffer(self.ctx, probe.width, probe.height)
+        self.reference_gbuffer = GBuffer(self.ctx, s.width, s.height)
         self.atlas = AtlasComposer(self.ctx, self.layout)
         self.encoder = AtlasEncoder(self.layout.width, self.layout.height, s.video)
         self.cache = QuadCache(s.width, s.height)
@@ -75,6 +78,12 @@ class QuasarServer(MethodServer):
         self.reference_ids: np.ndarray | None = None
         self.frames_since_reference = 0
         self._force_reference = True
+
+    def generator_for(self, width: int, height: int) -> QuadGenerator:
+        """One quad generator per layer size (they hold the Quad Maps)."""
+        if (width, height) not in self._generators:
+            self._generators[(width, height)] = QuadGenerator(self.ctx, width, height)
+        return self._generators[(width, height)]
 
     def camera_for(self, pose: Pose) -> Camera:
         return Camera.perspective(pose, self.s.width, self.s.height, self.s.fovy_deg)
@@ -99,8 +108,10 @@ class QuasarServer(MethodServer):
         gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity)
         wide_cam = wide_camera(camera, s.wide_fovy_deg, s.wide_scale)
         wide_gb = self.renderer.gbuffer(wide_cam, t, target=self.wide_gbuffer)
+        # The reference view is rendered again only in a scene that moves (to find what changed, §3.5.2, and for
+        # its current colour); in a static scene the reference frame's colour, kept below, is still exact.
         ref_gb = None
-        if not is_reference:
+        if not is_reference and self.renderer.scene.is_dynamic:
             ref_gb = self.renderer.gbuffer(self.reference_camera, t, target=self.reference_gbuffer)
         ctx.finish()
         ms["gbuffers"] = (time.perf_counter() - t0) * 1e3
@@ -120,22 +131,27 @@ class QuasarServer(MethodServer):
             self.reference_camera = camera
             self.reference_depth = gbs[0].read_depth()
             self.reference_ids = gbs[0].read_object_id()
+            if not self.renderer.scene.is_dynamic:
+                ctx.copy_framebuffer(self.reference_gbuffer.color_fbo, gbs[0].color_fbo)
             self.reference_id = self.frame_id
             self.frames_since_reference = 1  # frames sent since, and including, the reference
             self._force_reference = False
         else:
             ref_cam = self.reference_camera
-            # Geometry that changed in the reference view since it was cached (§3.5.2).
-            depth_now, ids_now = ref_gb.read_depth(), ref_gb.read_object_id()
-            with np.errstate(invalid="ignore"):
-                changed = (ids_now != self.reference_ids) | ~(
-                    np.abs(depth_now - self.reference_depth) <= s.change_threshold * np.minimum(depth_now,
-                                                                                                self.reference_depth))
-            changed &= ~(np.isinf(depth_now) & np.isinf(self.reference_depth))
-            updated = quads(ref_gb, ref_cam, s.visible, mask=changed) if changed.any() else QuadSet.empty()
-            self.cache.update(updated)
-            self.reference_depth[changed] = depth_now[changed]
-            self.reference_ids[changed] = ids_now[changed]
+            updated = QuadSet.empty()
+            if ref_gb is not None:
+                # Geometry that changed in the reference view since it was cached (§3.5.2).
+                depth_now, ids_now = ref_gb.read_depth(), ref_gb.read_object_id()
+                with np.errstate(invalid="ignore"):
+                    changed = (ids_now != self.reference_ids) | ~(
+                        np.abs(depth_now - self.reference_depth)
+                        <= s.change_threshold * np.minimum(depth_now, self.reference_depth))
+                changed &= ~(np.isinf(depth_now) & np.isinf(self.reference_depth))
+                if changed.any():
+                    updated = quads(ref_gb, ref_cam, s.visible, mask=changed)
+                self.cache.update(updated)
+                self.reference_depth[changed] = depth_now[changed]
+                self.reference_ids[changed] = ids_now[changed]
             # Geometry revealed at the new pose: not covered by the cached mesh (§3.5.1), 1-pixel expansion.
             self.mesh.build([MeshLayer(self.cache.quads, ref_cam, L.reference)], (L.width, L.height))
             self.mesh_view.render(self.mesh, camera, self.atlas.texture)
@@ -148,9 +164,10 @@ class QuasarServer(MethodServer):
             layers.append(QuadLayer(LayerKind.UPDATED, s.width, s.height, ref_cam.to_array(), L.reference, updated))
             layers.append(QuadLayer(LayerKind.REVEALED, s.width, s.height, cam_floats, L.current, rev))
             self.frames_since_reference += 1
+        hidden_cam = self.layer_renderer.hidden_camera(camera)
         for gb, rect in zip(gbs[1:], L.hidden):
-            layers.append(QuadLayer(LayerKind.HIDDEN, s.width, s.height, cam_floats, rect,
-                                    quads(gb, camera, s.hidden)))
+            layers.append(QuadLayer(LayerKind.HIDDEN, hidden_cam.width, hidden_cam.height, hidden_cam.to_array(),
+                                    rect, quads(gb, hidden_cam, s.hidden, generator=self.hidden_generator)))
         wide = quads(wide_gb, wide_cam, s.hidden, generator=self.wide_generator, inner=camera)
         layers.append(QuadLayer(LayerKind.WIDE, wide_cam.width, wide_cam.height, wide_cam.to_array(), L.wide, wide))
         ms.update(quads=timings.quads, merge=timings.merge, gather=timings.gather)
@@ -163,7 +180,7 @@ class QuasarServer(MethodServer):
 
         t0 = time.perf_counter()
         self.atlas.clear()
-        self.atlas.draw((gbs[0] if is_reference else ref_gb).color, L.reference)
+        self.atlas.draw((gbs[0] if is_reference else ref_gb or self.reference_gbuffer).color, L.reference)
         if not is_reference:
             self.atlas.draw(gbs[0].color, L.current)
         for gb, rect in zip(gbs[1:], L.hidden):
