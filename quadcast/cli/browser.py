@@ -58,9 +58,11 @@ def launch_chromium():
             browser.close()
 
 
-def page_url(port: int, size: tuple[int, int], trace: str = "builtin:walk", host: str = "127.0.0.1", **extra) -> str:
-    query = "&".join([f"trace={trace}", f"size={size[0]}x{size[1]}"] + [f"{k}={v}" for k, v in extra.items()])
-    return f"http://{host}:{port}/?{query}"
+def page_url(port: int, size: tuple[int, int], trace: str | None = "builtin:walk", host: str = "127.0.0.1",
+             token: str = "", **extra) -> str:
+    """The viewer's address; the token goes in the fragment, which the browser never sends to the server."""
+    query = ([f"trace={trace}"] if trace else []) + [f"size={size[0]}x{size[1]}"] + [f"{k}={v}" for k, v in extra.items()]
+    return f"http://{host}:{port}/?{'&'.join(query)}" + (f"#token={token}" if token else "")
 
 
 def bench_browser(sizes: list[tuple[int, int]], scene: str = "builtin:courtyard", duration: float = 20.0,
