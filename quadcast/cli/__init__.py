@@ -166,7 +166,7 @@ def cmd_bench(args) -> int:
         from quadcast.cli.browser import bench_browser, chromium_missing
         if (missing := chromium_missing()) is not None:
             raise ValueError(f"bench browser: {missing}")
-        rows = bench_browser(sizes, scenes[0], duration=args.seconds,
+        rows = bench_browser(sizes, scenes[0], duration=args.seconds, trace=args.trace,
                              screenshot=Path(args.screenshot) if args.screenshot else None)
     else:
         raise ValueError(f"unknown benchmark {args.what!r}")
@@ -254,6 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="also write the figures to this JSON file")
     p.add_argument("--seconds", type=float, default=20.0, help="browser: measuring time per size")
     p.add_argument("--screenshot", help="browser: save a screenshot of the page (last size) to this PNG")
+    p.add_argument("--trace", default="builtin:walk", help="browser: the built-in trace the page follows")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demo", help="the live system on the built-in scene: server, link (20±10 ms) and client "

@@ -66,8 +66,9 @@ def page_url(port: int, size: tuple[int, int], trace: str | None = "builtin:walk
 
 
 def bench_browser(sizes: list[tuple[int, int]], scene: str = "builtin:courtyard", duration: float = 20.0,
-                  warmup: float = 3.0, screenshot: Path | None = None, out_dir: Path | None = None) -> list[dict]:
-    """The viewer page following builtin:walk against a live server on loopback (both on this machine): per size,
+                  warmup: float = 3.0, screenshot: Path | None = None, out_dir: Path | None = None,
+                  trace: str = "builtin:walk") -> list[dict]:
+    """The viewer page following a built-in trace (builtin:walk) against a live server on loopback (both on this machine): per size,
     the page's display fps, frame age (display time - the time the frame was predicted for, ms), frames applied
     per second and Mbps, from ``window.quadcast.stats`` sampled every 0.5 s over ``duration`` s after a warm-up."""
     import tempfile
@@ -83,21 +84,21 @@ def bench_browser(sizes: list[tuple[int, int]], scene: str = "builtin:courtyard"
             port = int(server.wait_for(LISTENING, 180).group(2))
             with launch_chromium() as browser:
                 for w, h in sizes:
-                    rows.append(_bench_size(browser, port, (w, h), duration, warmup, screenshot))
+                    rows.append(_bench_size(browser, port, (w, h), duration, warmup, screenshot, trace))
         finally:
             server.stop()
     return rows
 
 
 def _bench_size(browser, port: int, size: tuple[int, int], duration: float, warmup: float,
-                screenshot: Path | None) -> dict:
+                screenshot: Path | None, trace: str) -> dict:
     w, h = size
     page = browser.new_page(viewport={"width": w, "height": h})
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
     try:
-        page.goto(page_url(port, size))
+        page.goto(page_url(port, size, trace))
         page.wait_for_function("window.quadcast && window.quadcast.stats.framesApplied > 0", timeout=120_000)
         time.sleep(warmup)
         read = "({...window.quadcast.stats})"
@@ -113,7 +114,7 @@ def _bench_size(browser, port: int, size: tuple[int, int], duration: float, warm
     finally:
         page.close()
     ages = [s["frameAgeMs"] for s in samples if s["frameAgeMs"] is not None]
-    row = {"size": f"{w}x{h}", "seconds": elapsed,
+    row = {"size": f"{w}x{h}", "trace": trace, "seconds": elapsed,
            "fps": (last["framesDisplayed"] - first["framesDisplayed"]) / elapsed,
            "frames_applied_per_s": (last["framesApplied"] - first["framesApplied"]) / elapsed,
            "frame_age_ms_median": statistics.median(ages) if ages else None,
@@ -122,7 +123,7 @@ def _bench_size(browser, port: int, size: tuple[int, int], duration: float, warm
            "frames_received": last["framesReceived"], "frames_rejected": last["framesRejected"],
            "reference_requests": last["referenceRequests"], "page_errors": errors}
     f = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
-    print(f"browser {row['size']}: {row['fps']:.1f} fps displayed, frame age median "
+    print(f"browser {row['size']} {trace}: {row['fps']:.1f} fps displayed, frame age median "
           f"{f(row['frame_age_ms_median'], '.0f')} ms (p90 {f(row['frame_age_ms_p90'], '.0f')} ms), "
           f"{row['frames_applied_per_s']:.1f} frames/s applied, {row['mbps']:.2f} Mbps, "
           f"{len(errors)} page errors  [{elapsed:.0f} s, headless Chromium on SwiftShader, server on the same "
