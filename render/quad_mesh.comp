@@ -29,10 +29,8 @@ void main() {
     uint v0 = 16u * (u_base_quad + i);
     for (uint s = 0u; s < 4u; ++s) {
         for (uint c = 0u; c < 4u; ++c) {
-            vec2 p = origin + 0.5 * size * vec2(float((s & 1u) + (c & 1u)), float((s >> 1) + (c >> 1)));
-            vec3 r = normalize(ray_dir(p));
-            float t = ray_plane_t(r, n, d) + q.off[s][c];
-            vec3 pos = r * max(t, u_near);
+            vec2 p = quad_corner_point(origin, size, int(s), int(c));
+            vec3 pos = quad_corner_position(p, n, d, q.off[s][c]);
             vec2 uv = (u_atlas_rect.xy + p / vec2(u_size) * u_atlas_rect.zw) / u_atlas_size;
             uint v = (v0 + 4u * s + c) * 5u;
             vertices[v] = pos.x; vertices[v + 1u] = pos.y; vertices[v + 2u] = pos.z;

@@ -17,7 +17,6 @@ Plain HTTP responses (the viewer's static files) go through the same protocol ob
 from __future__ import annotations
 
 import asyncio
-import collections
 import http
 import urllib.parse
 
@@ -29,8 +28,8 @@ from websockets.protocol import State
 from websockets.server import ServerProtocol
 
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.messages import LENGTH_PREFIX, Message, MessageDecoder, encode_message
-from quadcast.transport.channel import Channel
+from quadcast.protocol.messages import LENGTH_PREFIX, Message, encode_message
+from quadcast.transport.channel import TcpChannel
 
 __all__ = ["HttpRequestError", "WebSocketChannel", "read_http_request", "send_http_response", "accept_websocket",
            "same_origin"]
@@ -127,17 +126,16 @@ async def accept_websocket(protocol: ServerProtocol, request: Request, reader: a
     return WebSocketChannel(protocol, reader, writer, max_message_bytes, peer)
 
 
-class WebSocketChannel(Channel):
-    """The wire protocol over an open WebSocket (see the module docstring)."""
+class WebSocketChannel(TcpChannel):
+    """The wire protocol over an open WebSocket (see the module docstring): a :class:`TcpChannel` whose bytes are
+    WebSocket-framed by ``protocol``."""
 
     def __init__(self, protocol: ServerProtocol, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-                 max_message_bytes: int, peer: str = "websocket") -> None:
-        self.protocol, self.reader, self.writer = protocol, reader, writer
-        self.decoder = MessageDecoder(max_message_bytes)
-        self._pending: collections.deque[Message] = collections.deque()
-        self.bytes_in = self.bytes_out = 0
-        self.peer = peer
-        self.closed = False
+                 max_message_bytes: int, peer: str | None = None) -> None:
+        super().__init__(reader, writer, max_message_bytes)
+        self.protocol = protocol
+        if peer is not None:
+            self.peer = peer
         self._eof = False
 
     async def recv(self) -> Message | None:
@@ -174,25 +172,20 @@ class WebSocketChannel(Channel):
     async def send(self, msg: Message) -> None:
         if self.closed or self._eof:
             raise ConnectionError(f"channel to {self.peer} is closed")
-        data = encode_message(msg)
         try:
-            self.protocol.send_binary(data)
+            self.protocol.send_binary(encode_message(msg))
         except InvalidState as exc:
-            raise ConnectionError(f"channel to {self.peer}: {exc}") from None          # one whole message per write: concurrent senders never interleave
-        chunks = self.protocol.data_to_send()
+            raise ConnectionError(f"channel to {self.peer}: {exc}") from None
+        chunks = self.protocol.data_to_send()       # one whole message per write: concurrent senders never interleave
         self.writer.write(b"".join(chunks))
         self.bytes_out += sum(map(len, chunks))
         await self.writer.drain()
 
     async def close(self) -> None:
-        if self.closed:
-            return
-        self.closed = True
-        try:
-            if self.protocol.state is State.OPEN:
+        if not self.closed and self.protocol.state is State.OPEN:
+            try:
                 self.protocol.send_close(1000, "bye")
                 await asyncio.wait_for(_flush(self.protocol, self.writer), 2.0)
-            self.writer.close()
-            await asyncio.wait_for(self.writer.wait_closed(), 2.0)
-        except (ConnectionError, OSError, asyncio.TimeoutError, RuntimeError):
-            pass
+            except (ConnectionError, OSError, asyncio.TimeoutError, RuntimeError):
+                pass
+        await super().close()

@@ -26,11 +26,9 @@ void main() {
     vec2 origin = a_head.xy;
     vec3 n = a_normal_depth.xyz;
     float d = plane_d(n, origin + 0.5 * size, a_normal_depth.w);
-    vec2 p = origin + 0.5 * size * vec2(float((s & 1) + (c & 1)), float((s >> 1) + (c >> 1)));
-    vec3 r = normalize(ray_dir(p));
+    vec2 p = quad_corner_point(origin, size, s, c);
     vec4 off = s == 0 ? a_off0 : s == 1 ? a_off1 : s == 2 ? a_off2 : a_off3;
-    float t = ray_plane_t(r, n, d) + off[c];
-    v_position = r * max(t, u_near);
+    v_position = quad_corner_position(p, n, d, off[c]);
     v_uv = (u_atlas_rect.xy + p / vec2(u_size) * u_atlas_rect.zw) / u_atlas_size;
     gl_Position = vec4(0.0);
     gl_PointSize = 1.0;
