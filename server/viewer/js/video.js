@@ -89,8 +89,10 @@ export class AtlasVideo {
     return "";
   }
 
-  // Forget everything (a reconnection, an overflow): the next picture must come from an IDR.
+  // Forget everything (a new session, an overflow): pictures still in the decoder are dropped (a new session's
+  // frame ids start again at 0) and the next one must come from an IDR.
   reset() {
+    this.close();
     this.needsKeyframe = true;
     this.lastSequence = null;
   }
