@@ -3,11 +3,18 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 EGL_PACKAGES := libegl1 libgl1-mesa-dri libegl-mesa0
+BROWSER_PACKAGES := chromium
 STAMP := $(VENV)/.installed
+VIEWER := server/viewer
+NPM_STAMP := $(VIEWER)/node_modules/.package-lock.json
 
-.PHONY: setup demo test bench clean system-deps
+.PHONY: setup demo test bench clean system-deps browser-deps
 
-setup: $(STAMP) system-deps
+setup: $(STAMP) $(NPM_STAMP) system-deps
+
+# The viewer page's JavaScript dependency (fzstd), exactly as locked.
+$(NPM_STAMP): $(VIEWER)/package.json $(VIEWER)/package-lock.json
+	cd $(VIEWER) && npm ci --no-audit --no-fund --loglevel=error
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -27,11 +34,23 @@ system-deps:
 	  fi; \
 	fi
 
+# Debian's Chromium for the browser tests and `quadcast bench browser` (playwright drives /usr/bin/chromium):
+# apt-get when root; otherwise the browser tests skip, saying why.
+browser-deps:
+	@if [ ! -x /usr/bin/chromium ]; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    echo "installing $(BROWSER_PACKAGES)"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(BROWSER_PACKAGES) >/dev/null; \
+	  else \
+	    echo "note: the browser tests need Debian's $(BROWSER_PACKAGES); run: sudo apt-get install $(BROWSER_PACKAGES)"; \
+	  fi; \
+	fi
+
 demo: setup
 	$(BIN)/quadcast demo
 
 # The tests, and the import-linter contract in pyproject.toml (a layer that imports one above it fails).
-test: setup
+test: setup browser-deps
 	$(BIN)/lint-imports
 	$(BIN)/python -m pytest
 
@@ -41,6 +60,8 @@ bench: setup
 	$(BIN)/quadcast bench server
 	$(BIN)/quadcast bench client
 	$(BIN)/quadcast bench stereo --sizes 960x540
+	$(MAKE) browser-deps
+	$(BIN)/quadcast bench browser --sizes 960x540
 
 clean:
-	rm -rf $(VENV) out .pytest_cache .hypothesis
+	rm -rf $(VENV) out .pytest_cache .hypothesis $(VIEWER)/node_modules

@@ -31,6 +31,19 @@ float depth_along(vec2 p, float t) {
     return t * u_near / length(dir);
 }
 
+// Image point (pixels) of corner c of sub-quad s (both 0 TL, 1 TR, 2 BL, 3 BR) of the quad whose block starts at
+// `origin` and is `size` pixels wide.
+vec2 quad_corner_point(vec2 origin, float size, int s, int c) {
+    return origin + 0.5 * size * vec2(float((s & 1) + (c & 1)), float((s >> 1) + (c >> 1)));
+}
+
+// View-space position of the mesh vertex at image point p: where its ray meets the quad's plane (normal n, offset
+// d = plane_d(...)), moved `offset` along the ray, never nearer than the near plane.
+vec3 quad_corner_position(vec2 p, vec3 n, float d, float offset) {
+    vec3 r = normalize(ray_dir(p));
+    return r * max(ray_plane_t(r, n, d) + offset, u_near);
+}
+
 // Keep a normal within max_angle of the direction back to the camera (avoids near-grazing quads).
 vec3 limit_grazing(vec3 n, vec3 to_camera, float max_angle) {
     float c = dot(n, to_camera);

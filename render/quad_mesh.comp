@@ -18,6 +18,17 @@ uniform uint u_count;
 uniform vec4 u_atlas_rect;    // x, y, w, h of this layer's colour in the atlas (pixels, top-left origin)
 uniform vec2 u_atlas_size;
 
+void emit(uint v, vec2 p, vec3 pos) {
+    vec2 uv = (u_atlas_rect.xy + p / vec2(u_size) * u_atlas_rect.zw) / u_atlas_size;
+    vertices[5u * v] = pos.x; vertices[5u * v + 1u] = pos.y; vertices[5u * v + 2u] = pos.z;
+    vertices[5u * v + 3u] = uv.x; vertices[5u * v + 4u] = uv.y;
+}
+
+void quad_indices(uint k, uint b) {   // two triangles of the (sub-)quad whose corners start at vertex b
+    indices[k] = b; indices[k + 1u] = b + 2u; indices[k + 2u] = b + 1u;
+    indices[k + 3u] = b + 1u; indices[k + 4u] = b + 2u; indices[k + 5u] = b + 3u;
+}
+
 void main() {
     uint i = gl_GlobalInvocationID.x;
     if (i >= u_count) return;
@@ -29,33 +40,17 @@ void main() {
     uint v0 = q.head.w & 0x7fffffffu;
     if ((q.head.w >> 31) != 0u) {        // flattened: the whole quad, one plane
         for (uint c = 0u; c < 4u; ++c) {
-            vec2 p = origin + size * vec2(float(c & 1u), float(c >> 1));
-            vec3 r = normalize(ray_dir(p));
-            vec3 pos = r * max(ray_plane_t(r, n, d), u_near);
-            vec2 uv = (u_atlas_rect.xy + p / vec2(u_size) * u_atlas_rect.zw) / u_atlas_size;
-            uint v = (v0 + c) * 5u;
-            vertices[v] = pos.x; vertices[v + 1u] = pos.y; vertices[v + 2u] = pos.z;
-            vertices[v + 3u] = uv.x; vertices[v + 4u] = uv.y;
+            vec2 p = quad_corner_point(origin, 2.0 * size, 0, int(c));
+            emit(v0 + c, p, quad_corner_position(p, n, d, 0.0));
         }
-        uint k = v0 / 2u * 3u;
-        indices[k] = v0; indices[k + 1u] = v0 + 2u; indices[k + 2u] = v0 + 1u;
-        indices[k + 3u] = v0 + 1u; indices[k + 4u] = v0 + 2u; indices[k + 5u] = v0 + 3u;
+        quad_indices(v0 / 2u * 3u, v0);
         return;
     }
     for (uint s = 0u; s < 4u; ++s) {
         for (uint c = 0u; c < 4u; ++c) {
-            vec2 p = origin + 0.5 * size * vec2(float((s & 1u) + (c & 1u)), float((s >> 1) + (c >> 1)));
-            vec3 r = normalize(ray_dir(p));
-            float t = ray_plane_t(r, n, d) + q.off[s][c];
-            vec3 pos = r * max(t, u_near);
-            vec2 uv = (u_atlas_rect.xy + p / vec2(u_size) * u_atlas_rect.zw) / u_atlas_size;
-            uint v = (v0 + 4u * s + c) * 5u;
-            vertices[v] = pos.x; vertices[v + 1u] = pos.y; vertices[v + 2u] = pos.z;
-            vertices[v + 3u] = uv.x; vertices[v + 4u] = uv.y;
+            vec2 p = quad_corner_point(origin, size, int(s), int(c));
+            emit(v0 + 4u * s + c, p, quad_corner_position(p, n, d, q.off[s][c]));
         }
-        uint k = v0 / 2u * 3u + 6u * s;
-        uint b = v0 + 4u * s;
-        indices[k] = b; indices[k + 1u] = b + 2u; indices[k + 2u] = b + 1u;
-        indices[k + 3u] = b + 1u; indices[k + 4u] = b + 2u; indices[k + 5u] = b + 3u;
+        quad_indices(v0 / 2u * 3u + 6u * s, v0 + 4u * s);
     }
 }

@@ -551,7 +551,18 @@ class LiveServer:
             await asyncio.get_running_loop().run_in_executor(None, lambda s=spare: s.close(timeout=1.0))
 
     async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        await self.serve_channel(TcpChannel(reader, writer, self.config.max_message_bytes))
+        # the first bytes tell a binary-protocol client from a browser (HTTP: the viewer page, its WebSocket)
+        from quadcast.server.web import serve_web, starts_http
+        try:
+            first = await asyncio.wait_for(reader.readexactly(4), self.config.handshake_timeout)
+        except asyncio.IncompleteReadError as exc:
+            first = exc.partial
+        except (asyncio.TimeoutError, ConnectionError, OSError):
+            first = b""          # the session's own handshake timeout ends it with an ErrorMessage
+        if starts_http(first):
+            await serve_web(self, reader, writer, first)
+        else:
+            await self.serve_channel(TcpChannel(reader, writer, self.config.max_message_bytes, initial=first))
 
     async def serve_channel(self, channel: Channel) -> None:
         """Run one session on an accepted channel until it ends."""

@@ -42,22 +42,25 @@ class Channel:
 
 
 class TcpChannel(Channel):
-    """The wire protocol on an asyncio TCP stream; incoming messages are capped at ``max_message_bytes``."""
+    """The wire protocol on an asyncio TCP stream; incoming messages are capped at ``max_message_bytes``.
+    ``initial``: bytes already read off the stream (a server that looked at them to tell protocols apart)."""
 
     def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-                 max_message_bytes: int) -> None:
+                 max_message_bytes: int, initial: bytes = b"") -> None:
         self.reader, self.writer = reader, writer
         self.decoder = MessageDecoder(max_message_bytes)
         self._pending: collections.deque[Message] = collections.deque()
         self.bytes_in = self.bytes_out = 0
+        self._initial = bytes(initial)
         peer = writer.get_extra_info("peername")
         self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
         self.closed = False
 
     async def recv(self) -> Message | None:
         while not self._pending:
+            data, self._initial = self._initial, b""
             try:
-                data = await self.reader.read(_READ_CHUNK)
+                data = data or await self.reader.read(_READ_CHUNK)
             except (ConnectionError, OSError):
                 return None
             if not data:

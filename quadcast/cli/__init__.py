@@ -5,7 +5,7 @@
     quadcast predict  --trace T --latency MS --jitter MS [--no-predict] [--smooth] [--seed N]
     quadcast eval     --scene S --trace T --method M --latency MS --jitter MS --viewcell R --size WxH --out DIR
     quadcast eval     --sweep --size WxH [--frames N] [--every K] --out DIR
-    quadcast bench    server|client|stereo|render [--sizes 960x540,1920x1080] [--scenes builtin:courtyard,monastery]
+    quadcast bench    server|client|stereo|render|browser [--sizes 960x540,1920x1080] [--scenes builtin:courtyard,monastery]
     quadcast server   --port P [--method quasar] [--transport tcp|webrtc] [--host 127.0.0.1] [--token T]
     quadcast link     --listen P --to HOST:PORT --delay 20ms --jitter 10ms [--rate 200mbit] [--loss 0.5%]
     quadcast client   --connect HOST:PORT --trace T [--size WxH] [--duration S] [--transport tcp|webrtc] --out DIR
@@ -162,6 +162,12 @@ def cmd_bench(args) -> int:
         rows = bench.bench_client(scenes, sizes, args.frames, quiet=args.quiet)
     elif args.what == "stereo":
         rows = bench.bench_stereo(scenes, sizes[0], args.frames, quiet=args.quiet)
+    elif args.what == "browser":
+        from quadcast.cli.browser import bench_browser, chromium_missing
+        if (missing := chromium_missing()) is not None:
+            raise ValueError(f"bench browser: {missing}")
+        rows = bench_browser(sizes, scenes[0], duration=args.seconds, trace=args.trace,
+                             screenshot=Path(args.screenshot) if args.screenshot else None)
     else:
         raise ValueError(f"unknown benchmark {args.what!r}")
     if args.json:
@@ -238,12 +244,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("bench", help="print speed figures (not a test)")
-    p.add_argument("what", choices=["server", "render", "client", "stereo"],
-                   help="stereo (YORO quality and cost ratio) runs at the first of --sizes")
+    p.add_argument("what", choices=["server", "render", "client", "stereo", "browser"],
+                   help="stereo (YORO quality and cost ratio) runs at the first of --sizes; browser (the viewer page "
+                        "in headless Chromium against a live server on loopback: fps, frame age) on the first of "
+                        "--scenes")
     p.add_argument("--scenes", default="builtin:courtyard,monastery")
     p.add_argument("--sizes", default="960x540,1920x1080")
     p.add_argument("--frames", type=int, default=10)
     p.add_argument("--json", help="also write the figures to this JSON file")
+    p.add_argument("--seconds", type=float, default=20.0, help="browser: measuring time per size")
+    p.add_argument("--screenshot", help="browser: save a screenshot of the page (last size) to this PNG")
+    p.add_argument("--trace", default="builtin:walk", help="browser: the built-in trace the page follows")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demo", help="the live system on the built-in scene: server, link (20±10 ms) and client "

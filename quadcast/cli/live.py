@@ -77,6 +77,10 @@ def cmd_server(args) -> int:
         server = LiveServer(cfg, make_server, transport=args.transport)
         await server.start()
         print(server_summary_line(server), flush=True)
+        if args.transport == "tcp":
+            host = f"[{cfg.host}]" if ":" in cfg.host else cfg.host
+            print(f"server: viewer page at http://{host}:{server.port}/" + ("#token=..." if cfg.token else ""),
+                  flush=True)
         await server.serve_forever()
 
     try:
