@@ -73,8 +73,8 @@ class QuasarServer(MethodServer):
         probe = wide_camera(self.camera_for(Pose([0, 0, 0])), s.wide_fovy_deg, s.wide_scale)
         self.layout = AtlasLayout.for_view(s.width, s.height, s.layers - 1, (probe.width, probe.height),
                                            s.hidden_scale, s.far_size)
-        # With a far field, the sky and geometry beyond the split get no quads (the far field shows them).
-        split = dict(sky=False, max_depth=s.far_split_m) if s.far_field else {}
+        # With a far field, geometry beyond the split gets no quads (the far field shows it).
+        split = dict(max_depth=s.far_split_m) if s.far_field else {}
         self.visible_params = replace(s.visible, **split)
         self.hidden_params = replace(s.hidden, **split)
         far = self.camera_for(Pose([0, 0, 0])).frustum.far
@@ -184,7 +184,7 @@ class QuasarServer(MethodServer):
                 revealed = np.isinf(mesh_depth) | (depth < mesh_depth * (1 - s.change_threshold))
             revealed = binary_dilation(revealed, iterations=1)
             if self.far_field is not None:
-                revealed &= ~(depth > s.far_split_m)       # the sky and far geometry are the far field's
+                revealed &= ~(depth > s.far_split_m)       # far geometry (and revealed sky) is the far field's
             rev = quads(gbs[0], camera, self.visible_params, mask=revealed) if revealed.any() else QuadSet.empty()
             layers.append(QuadLayer(LayerKind.UPDATED, s.width, s.height, ref_cam.to_array(), L.reference, updated))
             layers.append(QuadLayer(LayerKind.REVEALED, s.width, s.height, cam_floats, L.current, rev))
