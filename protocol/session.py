@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from quadcast.protocol.pose import MAX_POSITION_M, MAX_TIME_S
 from quadcast.protocol.prediction import PosePredictor
 
 __all__ = ["ServerSessionConfig", "ServerSession", "ServerCounters", "EncodeFrame", "FrameQueue", "QueueCounters",
@@ -271,8 +272,11 @@ class ServerSession:
                 position, quat = predicted
         reference, self._want_reference = self._want_reference, False
         self._encoding = True
-        return EncodeFrame(np.asarray(position, np.float64), np.asarray(quat, np.float64), float(display_t),
-                           reference, float(now))
+        # a decision is always a pose the wire format accepts (the client checks the frame's pose as we check
+        # the client's): extrapolation past the edge of the range stops at it
+        position = np.clip(np.asarray(position, np.float64), -MAX_POSITION_M, MAX_POSITION_M)
+        display_t = float(np.clip(display_t, -MAX_TIME_S, MAX_TIME_S))
+        return EncodeFrame(position, np.asarray(quat, np.float64), display_t, reference, float(now))
 
 
 # ------------------------------------------------------------------------------------------------ client

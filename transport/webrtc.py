@@ -425,7 +425,7 @@ class WebRtcListener:
         try:
             if policy.ssl is not None:
                 try:
-                    await asyncio.wait_for(writer.start_tls(policy.ssl), policy.request_timeout)
+                    await writer.start_tls(policy.ssl, ssl_handshake_timeout=policy.request_timeout)  # not in wait_for (3.11)
                 except (asyncio.TimeoutError, _ssl.SSLError, ConnectionError, OSError) as exc:
                     log.info("webrtc signalling from %s: TLS handshake failed: %s", peer, exc or "timed out")
                     return
