@@ -406,3 +406,26 @@ def test_idle_slot_holders_are_evicted_and_a_retrying_client_gets_in(tmp_path):
     assert channel is not None, "the retrying client was never admitted"
     assert counters.refused_busy >= 1                   # it was told "busy" first ...
     assert 0.4 <= waited < 10                           # ... and got in once the holders were evicted
+
+
+# ---------------------------------------------------------------------------------------------- item 7
+
+def test_amplifying_blobs_are_refused_by_the_clients_within_100_mib(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+    probe = Path(__file__).with_name("amplification_probe.py")
+    for step in ("gen", "measure"):
+        run = subprocess.run([sys.executable, str(probe), step, str(tmp_path)], capture_output=True, text=True,
+                             timeout=300)
+        assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    print(result)
+    errors = result["errors"]
+    assert result["blob_bytes"]["depth"] < 64_000 and result["blob_bytes"]["quads"] < 64_000
+    assert "depth blob: 16777216x1, expected the 320x180 asked for" in errors["depth blob 16777216x1 (meshwarp)"]
+    assert "layer[0]: 4096x2048, expected the 320x180 asked for" in errors["quad blob 8 Mi quads (quasar)"]
+    assert errors["H.264 4096x4096 (atw)"].startswith("VideoError")
+    assert errors["H.264 4096x4096 (quasar)"].startswith("VideoError")
+    assert result["peak_rss_growth_mib"] < 100
