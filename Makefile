@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 EGL_PACKAGES := libegl1 libgl1-mesa-dri libegl-mesa0
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench clean system-deps
+.PHONY: setup demo test bench fuzz clean system-deps
 
 setup: $(STAMP) system-deps
 
@@ -34,6 +34,11 @@ demo: setup
 test: setup
 	$(BIN)/lint-imports
 	$(BIN)/python -m pytest
+
+# 100,000 hypothesis inputs per decoder and through the server's pose path: unexpected exceptions, hangs, peak RSS
+# (exit 1 on any unexpected exception or hang). `make test` runs a short version (tests/test_fuzz.py).
+fuzz: setup
+	$(BIN)/python -m quadcast.sim.fuzz --examples 100000
 
 # Speed and size figures (not tests): renderer, server pipeline, client stages, YORO stereo.
 bench: setup
