@@ -93,7 +93,7 @@ class ClientConfig:
     transport: str = "tcp"
     retries: int = 5
     retry_delay: float = 0.5              # first backoff; doubles per failed attempt up to max_retry_delay
-    max_retry_delay: float = 8.0
+    max_retry_delay: float = 2.0
     max_busy_wait: float = 60.0           # never wait longer than this for a busy server's retry-after
     tls: bool = False                     # connect with TLS (implied by tls_ca / insecure)
     tls_ca: str | None = None             # PEM file of the CA (or self-signed certificate) to trust
@@ -121,6 +121,9 @@ class ClientConfig:
         if not (0 < self.retry_delay <= self.max_retry_delay):
             raise ValueError(f"retry delays: expected 0 < retry_delay <= max_retry_delay, got {self.retry_delay} "
                              f"and {self.max_retry_delay}")
+        if self.stereo and self.method not in STEREO_METHODS:
+            raise ValueError(f"--stereo: the {self.method} client keeps no depth to synthesize an eye from; stereo "
+                             f"works with the {' and '.join(STEREO_METHODS)} methods")
         self.ssl_context()                    # ValueError for a missing CA file, or --tls-ca with --insecure
 
     def ssl_context(self) -> ssl.SSLContext | None:
@@ -132,9 +135,6 @@ class ClientConfig:
     def backoff(self, attempt: int) -> float:
         """Seconds to wait after failed attempt ``attempt`` (0-based)."""
         return min(self.retry_delay * 2.0 ** min(attempt, 30), self.max_retry_delay)
-        if self.stereo and self.method not in STEREO_METHODS:
-            raise ValueError(f"--stereo: the {self.method} client keeps no depth to synthesize an eye from; stereo "
-                             f"works with the {' and '.join(STEREO_METHODS)} methods")
 
 
 @dataclass

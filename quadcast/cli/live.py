@@ -260,7 +260,7 @@ def add_live_commands(sub) -> None:
     p.add_argument("--stun", help="WebRTC: a STUN server URL (default: none)")
     p.add_argument("--retries", type=int, default=5,
                    help="connection attempts after a failure, a drop or a busy server, with exponential backoff "
-                        "(0.5 s doubling to 8 s; at least the server's retry-after)")
+                        "(0.5 s doubling to 2 s; at least the server's retry-after)")
     p.add_argument("--no-score", action="store_true", help="record only; skip the ground-truth scoring")
     p.add_argument("--stereo", action="store_true",
                    help="also show and record both eyes (the right one synthesized with YORO from the quad mesh) and "
