@@ -5,7 +5,8 @@ version in ``tests/test_fuzz.py``).
 (random bytes, and well-formed messages with random byte changes, truncations and extensions, so that inputs get
 past the magic numbers and headers) and reports, per target and in total: inputs, how many were accepted,
 *unexpected exceptions* (anything but the target's documented error), *hangs* (inputs that took over 1 s) and the
-process's peak RSS. It exits 1 when there was an unexpected exception or a hang.
+process's peak RSS. It exits 1 when there was an unexpected exception or a hang. (Times are wall clock on a
+machine others share: an input over 1 s is timed twice more, and is a hang only if it is slow every time.)
 
 Targets (expected error in brackets):
 
@@ -246,6 +247,15 @@ def _inputs(seeds: list[bytes] | None):
     return st.tuples(st.one_of(mutated(), st.binary(max_size=512)), chunk)
 
 
+def _timed(check, data: bytes, chunk: int) -> float:
+    t0 = time.perf_counter()
+    try:
+        check(data, chunk)
+    except Exception:  # noqa: BLE001 -- only the time matters here
+        pass
+    return time.perf_counter() - t0
+
+
 def fuzz_target(name: str, examples: int, seed: int = 0) -> FuzzResult:
     """Run ``examples`` inputs through target ``name``."""
     from hypothesis import HealthCheck, Phase, given, settings
@@ -276,6 +286,8 @@ def fuzz_target(name: str, examples: int, seed: int = 0) -> FuzzResult:
             if len(result.examples) < 3:
                 result.examples.append(f"input {data[:200]!r}...\n{traceback.format_exc()}")
         elapsed = time.perf_counter() - t0
+        if elapsed > HANG_S:   # wall clock on a shared machine: a hang is an input that is slow every time
+            elapsed = min(elapsed, *(_timed(check, data, chunk) for _ in range(2)))
         result.slowest_s = max(result.slowest_s, elapsed)
         result.hangs += elapsed > HANG_S
 
