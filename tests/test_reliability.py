@@ -429,3 +429,31 @@ def test_amplifying_blobs_are_refused_by_the_clients_within_100_mib(tmp_path):
     assert errors["H.264 4096x4096 (atw)"].startswith("VideoError")
     assert errors["H.264 4096x4096 (quasar)"].startswith("VideoError")
     assert result["peak_rss_growth_mib"] < 100
+
+
+# ---------------------------------------------------------------------------------------------- item 1 (client)
+
+def test_a_frame_of_empty_layers_is_applied_and_rendered(ctx):
+    """Empty layers are normal (a pose facing the open sky): the client applies such a frame and renders it.
+    (The server side of item 1 is server/quads.py's.)"""
+    from quadcast.codec.encoder import AtlasEncoder, VideoSettings
+    from quadcast.methods import make_client
+    from quadcast.protocol.methods import MethodConfig
+    from quadcast.protocol.quads import LayerKind, QuadFrame, QuadLayer, QuadSet, encode_quad_frame
+    from quadcast.render.camera import Camera
+    w, h = 64, 36
+    cam = Camera.perspective(Pose([0, 1.6, 0]), w, h, 60.0).to_array()
+    layers = [QuadLayer(kind, w, h, cam, (0, 0, w, h), QuadSet.empty()) for kind in (LayerKind.VISIBLE,
+                                                                                      LayerKind.HIDDEN)]
+    layers.append(QuadLayer(LayerKind.WIDE, w // 2, h // 2, cam, (0, h, w // 2, h // 2), QuadSet.empty()))
+    encoder = AtlasEncoder(2 * w, h + h // 2, VideoSettings(preset="ultrafast"))
+    video = encoder.encode(np.zeros((h + h // 2, 2 * w, 3), np.uint8), keyframe=True).data
+    encoder.close()
+    client = make_client("quasar", MethodConfig(width=w, height=h), ctx)
+    try:
+        client.receive(FramePayload(Method.QUASAR, 0, FrameType.REFERENCE, 0, 0.0, np.zeros(3),
+                                    np.array([0, 0, 0, 1.0]), video, encode_quad_frame(QuadFrame(layers)), True))
+        assert not client.needs_reference and client.stats["mesh_quads"] == 0
+        assert client.render(Pose([0, 1.6, 0])).shape == (h, w, 3)
+    finally:
+        client.close()
