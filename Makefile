@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 VIEWER := server/viewer
 NPM_STAMP := $(VIEWER)/node_modules/.package-lock.json
 
-.PHONY: setup demo test bench clean system-deps browser-deps
+.PHONY: setup demo test bench fuzz clean system-deps browser-deps
 
 setup: $(STAMP) $(NPM_STAMP) system-deps
 
@@ -53,6 +53,11 @@ demo: setup
 test: setup browser-deps
 	$(BIN)/lint-imports
 	$(BIN)/python -m pytest
+
+# 100,000 hypothesis inputs per decoder and through the server's pose path: unexpected exceptions, hangs, peak RSS
+# (exit 1 on any unexpected exception or hang). `make test` runs a short version (tests/test_fuzz.py).
+fuzz: setup
+	$(BIN)/python -m quadcast.sim.fuzz --examples 100000
 
 # Speed and size figures (not tests): renderer, server pipeline, client stages, YORO stereo.
 bench: setup

@@ -23,8 +23,13 @@ sent, so a late pose is late, not wrong.
 Loss and resync: a residual for a reference the client lacks, a frame the H.264 decoder cannot use, or a gap
 after a reconnect make the method client need a reference; the client then sends a ReferenceRequest (again every
 ``reference_timeout`` s while it still needs one) and keeps showing its last good state. If the connection
-drops, it reconnects (``retries`` attempts, ``retry_delay`` apart) and, until a self-contained frame arrives,
-ignores frames that depend on what it missed.
+drops, it reconnects and, until a self-contained frame arrives, ignores frames that depend on what it missed.
+
+Connecting: up to ``retries`` more attempts after a failed one, with exponential backoff (``retry_delay`` doubling
+up to ``max_retry_delay``); a busy server (``ErrorCode.BUSY``, or HTTP 503 from WebRTC signalling) says when to
+try again and the client waits at least that long. Refusals a retry cannot fix (token, method, size, version, a
+certificate that does not verify) end the run at once. With ``tls`` (implied by ``tls_ca`` and ``insecure``) the
+connection is TLS (WebRTC: the signalling is HTTPS; the media and data are DTLS either way).
 """
 from __future__ import annotations
 
@@ -32,6 +37,7 @@ import asyncio
 import collections
 import json
 import logging
+import ssl
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -47,7 +53,8 @@ from quadcast.protocol.session import ClientSession, RequestReference
 from quadcast.render.camera import Pose
 from quadcast.render.traces import resolve_trace
 from quadcast.render.worker import GLWorker
-from quadcast.transport.channel import Channel, open_tcp_channel
+from quadcast.transport.channel import Channel, ServerBusy, open_tcp_channel
+from quadcast.transport.tls import client_context
 
 __all__ = ["ClientConfig", "ClientTotals", "LiveClient", "FatalServerError"]
 
@@ -85,7 +92,13 @@ class ClientConfig:
     token: str = ""
     transport: str = "tcp"
     retries: int = 5
-    retry_delay: float = 0.5
+    retry_delay: float = 0.5              # first backoff; doubles per failed attempt up to max_retry_delay
+    max_retry_delay: float = 2.0
+    max_busy_wait: float = 60.0           # never wait longer than this for a busy server's retry-after
+    tls: bool = False                     # connect with TLS (implied by tls_ca / insecure)
+    tls_ca: str | None = None             # PEM file of the CA (or self-signed certificate) to trust
+    insecure: bool = False                # TLS without verifying the server (encryption only)
+    stun: str | None = None               # WebRTC: a STUN server URL (default: none)
     connect_timeout: float = 5.0
     welcome_timeout: float = 30.0         # Hello -> Welcome: the server may have to boot a worker process
     reference_timeout: float = 1.5
@@ -105,9 +118,23 @@ class ClientConfig:
             raise ValueError(f"--start must be >= 0 and --duration > 0, got {self.start} and {self.duration}")
         if self.retries < 0:
             raise ValueError(f"--retries must be >= 0, got {self.retries}")
+        if not (0 < self.retry_delay <= self.max_retry_delay):
+            raise ValueError(f"retry delays: expected 0 < retry_delay <= max_retry_delay, got {self.retry_delay} "
+                             f"and {self.max_retry_delay}")
         if self.stereo and self.method not in STEREO_METHODS:
             raise ValueError(f"--stereo: the {self.method} client keeps no depth to synthesize an eye from; stereo "
                              f"works with the {' and '.join(STEREO_METHODS)} methods")
+        self.ssl_context()                    # ValueError for a missing CA file, or --tls-ca with --insecure
+
+    def ssl_context(self) -> ssl.SSLContext | None:
+        """The client's TLS context, or None for a plaintext connection."""
+        if not (self.tls or self.tls_ca or self.insecure):
+            return None
+        return client_context(self.tls_ca, self.insecure)
+
+    def backoff(self, attempt: int) -> float:
+        """Seconds to wait after failed attempt ``attempt`` (0-based)."""
+        return min(self.retry_delay * 2.0 ** min(attempt, 30), self.max_retry_delay)
 
 
 @dataclass
@@ -152,6 +179,7 @@ class LiveClient:
         self.finished = asyncio.Event()
         self.records: list[dict] = []
         self._fatal: BaseException | None = None
+        self._ssl = config.ssl_context()
 
     # ------------------------------------------------------------------ clock and poses
 
@@ -167,10 +195,18 @@ class LiveClient:
 
     async def _open(self) -> Channel:
         cfg = self.cfg
-        if cfg.transport == "tcp":
-            return await open_tcp_channel(cfg.host, cfg.port, cfg.max_message_bytes, cfg.connect_timeout)
-        from quadcast.transport.webrtc import open_webrtc_channel
-        return await open_webrtc_channel(cfg.host, cfg.port, cfg.max_message_bytes, cfg.connect_timeout)
+        try:
+            if cfg.transport == "tcp":
+                return await open_tcp_channel(cfg.host, cfg.port, cfg.max_message_bytes, cfg.connect_timeout,
+                                              ssl=self._ssl)
+            from quadcast.transport.webrtc import open_webrtc_channel
+            return await open_webrtc_channel(cfg.host, cfg.port, cfg.max_message_bytes, cfg.connect_timeout,
+                                             token=cfg.token, ssl=self._ssl, stun=cfg.stun)
+        except ssl.SSLCertVerificationError as exc:
+            raise FatalServerError(f"TLS: the server's certificate did not verify ({exc.verify_message}); give "
+                                   f"--tls-ca with the certificate to trust, or --insecure") from None
+        except PermissionError as exc:
+            raise FatalServerError(f"server refused the session: {exc}") from None
 
     async def _handshake(self) -> Channel:
         """One connection attempt: Hello -> Welcome."""
@@ -182,6 +218,8 @@ class LiveClient:
             if isinstance(msg, ErrorMessage):
                 if msg.code in FATAL_CODES:
                     raise FatalServerError(f"server refused the session: {msg.text} (code {msg.code})")
+                if msg.code == ErrorCode.BUSY:
+                    raise ServerBusy(f"server busy: {msg.text}", msg.retry_after_s)
                 raise ConnectionError(f"server error {msg.code}: {msg.text}")
             if not isinstance(msg, Welcome):
                 raise ConnectionError(f"expected Welcome, got {type(msg).__name__ if msg else 'end of stream'}")
@@ -204,10 +242,15 @@ class LiveClient:
             except FatalServerError:
                 raise
             except (OSError, ConnectionError, asyncio.TimeoutError, ProtocolError) as exc:
+                delay = cfg.backoff(attempt)
+                if isinstance(exc, ServerBusy):
+                    delay = max(delay, min(exc.retry_after_s, cfg.max_busy_wait))
                 log.warning("connection attempt %d/%d to %s:%d failed: %s", attempt + 1, cfg.retries + 1,
-                            cfg.host, cfg.port, exc)
+                            cfg.host, cfg.port, exc or type(exc).__name__)
                 if attempt < cfg.retries:
-                    await asyncio.sleep(cfg.retry_delay)
+                    print(f"client: attempt {attempt + 1} failed ({exc or type(exc).__name__}); retrying in "
+                          f"{delay:.1f} s", flush=True)
+                    await asyncio.sleep(delay)
         return None
 
     async def _connection_loop(self, first: Channel) -> None:

@@ -28,6 +28,7 @@ from quadcast.codec.decoder import AtlasDecoder
 from quadcast.protocol.depth import DEFAULT_MAX_DEPTH_PIXELS, decode_depth
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload, Method
+from quadcast.protocol.methods import MAX_ATLAS_VIEWS, meshwarp_render_size
 from quadcast.render.camera import Camera, Frustum, Pose, gl_matrix
 from quadcast.render.gl import RENDER_DIR, gl_context, program, set_uniforms
 from quadcast.render.renderer import read_texture
@@ -90,7 +91,7 @@ class _BaselineClient(MethodClient):
         Frustum.symmetric(self.fovy, 1.0)
         Frustum.symmetric(self.server_fovy, 1.0)  # both raise ValueError for a bad field of view
         self.ctx = ctx or gl_context()
-        self.decoder = AtlasDecoder()
+        self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * self.width * self.height)
         self.frame: _Frame | None = None
         self._frame_tex: moderngl.Texture | None = None
         self._out = self.ctx.texture((self.width, self.height), 4, dtype="f1")
@@ -192,6 +193,7 @@ class MeshWarpClient(_BaselineClient):
                  ctx: moderngl.Context | None = None, max_depth_pixels: int = DEFAULT_MAX_DEPTH_PIXELS):
         super().__init__(width, height, fovy, server_fovy, ctx)
         self.max_depth_pixels = int(max_depth_pixels)
+        self.depth_size = meshwarp_render_size(self.width, self.height, self.server_fovy)   # what the server sends
         self._mesh_prog = program(self.ctx, HERE / "meshwarp.vert.glsl", HERE / "meshwarp.frag.glsl")
         self._depth_tex: moderngl.Texture | None = None
         self._grid: tuple[tuple[int, int], moderngl.Buffer, moderngl.VertexArray] | None = None
@@ -200,7 +202,7 @@ class MeshWarpClient(_BaselineClient):
         pose = _payload_pose(payload, self.method)
         # Video first (raises VideoError): the decoder follows the stream even if the depth turns out bad.
         rgb = self.decoder.decode(payload.video, payload.frame_id)
-        depth = decode_depth(payload.geometry, max_pixels=self.max_depth_pixels)
+        depth = decode_depth(payload.geometry, max_pixels=self.max_depth_pixels, size=self.depth_size)
         if rgb is None:
             return
         if depth.shape != rgb.shape[:2]:

@@ -12,6 +12,7 @@ from quadcast.client.stereo import STEREO_MODES, MeshStereo, StereoFrame
 from quadcast.codec.decoder import AtlasDecoder, VideoError
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload, FrameType, Method
+from quadcast.protocol.methods import MAX_ATLAS_VIEWS
 from quadcast.protocol.quads import LayerKind, QuadFrame, decode_quad_frame
 from quadcast.render.camera import DEFAULT_IPD_M, Camera, Frustum, Pose
 from quadcast.render.gl import gl_context
@@ -39,7 +40,9 @@ class QuasarClient(MethodClient):
         self.ctx = ctx or gl_context()
         self.width, self.height = width, height
         self.frustum = Frustum.symmetric(fovy_deg, width / height)
-        self.decoder = AtlasDecoder()
+        # budgets from the size this client asked for: quad layers of that size, an atlas of at most
+        # MAX_ATLAS_VIEWS such pictures (anything declaring more is refused before it is decoded)
+        self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * width * height)
         self.mesh = QuadMesh(self.ctx)
         self.view = MeshView(self.ctx, width, height)
         self.max_quads = max_quads
@@ -63,7 +66,7 @@ class QuasarClient(MethodClient):
         if payload.method != self.method:
             raise ProtocolError(f"{self.name} client got a {payload.method.name} payload")
         t0 = time.perf_counter()
-        frame = decode_quad_frame(payload.geometry, max_quads=self.max_quads)
+        frame = decode_quad_frame(payload.geometry, max_quads=self.max_quads, size=(self.width, self.height))
         ms["zstd"] = (time.perf_counter() - t0) * 1e3
         is_reference = payload.frame_type == FrameType.REFERENCE
         if is_reference and LayerKind.VISIBLE not in [layer.kind for layer in frame.layers]:

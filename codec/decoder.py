@@ -35,12 +35,16 @@ class VideoError(ValueError):
     """An H.264 access unit could not be decoded (corrupt, truncated or not H.264)."""
 
 
-def _new_codec() -> av.VideoCodecContext:
+def _new_codec(max_pixels: int | None = None) -> av.VideoCodecContext:
     codec = av.CodecContext.create("h264", "r")
     # One thread, no slice threading: FFmpeg's error resilience only flags
     # concealed macroblocks when the picture is decoded by a single thread.
     codec.thread_count = 1
-    codec.options = {"err_detect": "careful+explode"}
+    options = {"err_detect": "careful+explode"}
+    if max_pixels is not None:
+        # FFmpeg refuses a stream whose SPS declares a bigger picture before allocating it
+        options["max_pixels"] = str(int(max_pixels))
+    codec.options = options
     return codec
 
 
@@ -50,8 +54,13 @@ class AtlasDecoder:
     Call :meth:`decode` once per received access unit.
     """
 
-    def __init__(self) -> None:
-        self._codec: av.VideoCodecContext | None = _new_codec()
+    def __init__(self, max_pixels: int | None = None) -> None:
+        """``max_pixels``: the largest picture accepted (width x height), e.g. what the session asked for; a
+        stream declaring a bigger one fails with VideoError before its picture is allocated."""
+        if max_pixels is not None and max_pixels < 1:
+            raise ValueError(f"AtlasDecoder: max_pixels must be >= 1, got {max_pixels}")
+        self.max_pixels = max_pixels
+        self._codec: av.VideoCodecContext | None = _new_codec(max_pixels)
         self._needs_keyframe = True
         self._last_sequence: int | None = None
         self.decode_ms = 0.0
@@ -142,7 +151,7 @@ class AtlasDecoder:
         self._needs_keyframe = True
         self._last_sequence = None
         if self._codec is not None:
-            self._codec = _new_codec()
+            self._codec = _new_codec(self.max_pixels)
         return VideoError(message)
 
     def close(self) -> None:

@@ -116,15 +116,26 @@ def encode_depth(depth: np.ndarray, level: int = 3) -> bytes:
     return _HEADER.pack(DEPTH_MAGIC, DEPTH_VERSION, BLOCK, 0, width, height) + comp
 
 
-def decode_depth(blob: bytes, max_pixels: int = DEFAULT_MAX_DEPTH_PIXELS) -> np.ndarray:
+_CHUNK_PIXELS = 1 << 16
+"""Most pixels decoded at a time (whole block rows; at most an eighth of the map): the float64 temporaries
+(~40 bytes a pixel) stay a fraction of the output."""
+
+
+def decode_depth(blob: bytes, max_pixels: int = DEFAULT_MAX_DEPTH_PIXELS,
+                 size: tuple[int, int] | None = None) -> np.ndarray:
     """A depth blob -> float32 (H, W) linear depth in metres, ``inf`` for sky.
 
-    Any defect (bad magic/version/block size, a size over `max_pixels`, a truncated or corrupt zstd frame, a
-    decompressed size other than the header implies, trailing bytes, invalid block extremes) raises ProtocolError.
+    ``size`` is the (width, height) the receiver asked for: a blob of another size is refused before anything
+    is decompressed, as is one whose size padded to whole blocks exceeds `max_pixels`. Decoding then needs the
+    output, the decompressed body (about a quarter of the output) and a bounded working set.
+
+    Any defect (bad magic/version/block size, a size over `max_pixels` or other than `size`, a truncated or
+    corrupt zstd frame, a decompressed size other than the header implies, trailing bytes, invalid block
+    extremes) raises ProtocolError.
     """
     if not isinstance(blob, (bytes, bytearray, memoryview)):
         raise ProtocolError(f"depth blob: expected bytes, got {type(blob).__name__}")
-    blob = bytes(blob)
+    blob = memoryview(blob).cast("B")
     if len(blob) < _HEADER.size:
         raise ProtocolError(f"depth blob: truncated header ({len(blob)} of {_HEADER.size} bytes)")
     magic, version, block, flags, width, height = _HEADER.unpack_from(blob)
@@ -138,27 +149,37 @@ def decode_depth(blob: bytes, max_pixels: int = DEFAULT_MAX_DEPTH_PIXELS) -> np.
         raise ProtocolError(f"depth blob: flags {flags:#x}, expected 0")
     if width == 0 or height == 0:
         raise ProtocolError(f"depth blob: empty size {width}x{height}")
-    if width * height > max_pixels:
-        raise ProtocolError(f"depth blob: {width}x{height} = {width * height} pixels exceeds the cap of {max_pixels}")
-
-    body = decompress_exact(memoryview(blob)[_HEADER.size:], _body_size(width, height),
-                            f"depth blob ({width}x{height})")
-
+    if size is not None and (width, height) != tuple(size):
+        raise ProtocolError(f"depth blob: {width}x{height}, expected the {size[0]}x{size[1]} asked for")
     hp, wp = _padded(width, height)
+    if width * height > max_pixels or hp * wp > max_pixels:
+        raise ProtocolError(f"depth blob: {width}x{height} (padded to {wp}x{hp}) exceeds the cap of {max_pixels} "
+                            f"pixels")
+
+    body = decompress_exact(blob[_HEADER.size:], _body_size(width, height), f"depth blob ({width}x{height})")
+
     bh, bw = hp // BLOCK, wp // BLOCK
     nb = bh * bw
-    with np.errstate(invalid="ignore"):  # signalling NaNs in a corrupt blob: rejected just below
-        lo = np.frombuffer(body, np.float32, nb, 0).reshape(bh, bw).astype(np.float64)
-        hi = np.frombuffer(body, np.float32, nb, 4 * nb).reshape(bh, bw).astype(np.float64)
-    idx = _to_blocks(np.frombuffer(body, np.uint8, hp * wp, 8 * nb).reshape(hp, wp))
-    sky = idx == SKY_CODE
-    has_geometry = ~sky.all(axis=-1)
-    ok = np.isfinite(lo) & np.isfinite(hi) & (lo <= hi) & (lo >= 0) & (~has_geometry | (lo >= _MIN_INV))
-    if not ok.all():
-        by, bx = np.argwhere(~ok)[0]
-        raise ProtocolError(f"depth blob: block ({by}, {bx}) has invalid inverse-depth range "
-                            f"[{lo[by, bx]}, {hi[by, bx]}]")
-    inv = lo[..., None] + idx.astype(np.float64) * ((hi - lo) / LEVELS)[..., None]
-    with np.errstate(divide="ignore"):
-        depth = np.where(sky, np.inf, 1.0 / np.where(sky, 1.0, inv))
-    return _from_blocks(depth)[:height, :width].astype(np.float32)
+    lo_all = np.frombuffer(body, np.float32, nb, 0).reshape(bh, bw)
+    hi_all = np.frombuffer(body, np.float32, nb, 4 * nb).reshape(bh, bw)
+    blocks = np.frombuffer(body, np.uint8, hp * wp, 8 * nb).reshape(bh, BLOCK, bw, BLOCK)   # a view
+    out = np.empty((height, width), np.float32)
+    rows = max(1, min(_CHUNK_PIXELS, hp * wp // 8) // (BLOCK * wp))     # block rows per chunk
+    for r0 in range(0, bh, rows):
+        r1 = min(bh, r0 + rows)
+        with np.errstate(invalid="ignore"):  # signalling NaNs in a corrupt blob: rejected just below
+            lo, hi = lo_all[r0:r1].astype(np.float64), hi_all[r0:r1].astype(np.float64)
+        idx = blocks[r0:r1]
+        sky = idx == SKY_CODE
+        has_geometry = ~sky.all(axis=(1, 3))
+        ok = np.isfinite(lo) & np.isfinite(hi) & (lo <= hi) & (lo >= 0) & (~has_geometry | (lo >= _MIN_INV))
+        if not ok.all():
+            by, bx = np.argwhere(~ok)[0]
+            raise ProtocolError(f"depth blob: block ({r0 + by}, {bx}) has invalid inverse-depth range "
+                                f"[{lo[by, bx]}, {hi[by, bx]}]")
+        inv = lo[:, None, :, None] + idx * ((hi - lo) / LEVELS)[:, None, :, None]
+        with np.errstate(divide="ignore"):
+            depth = np.where(sky, np.inf, 1.0 / np.where(sky, 1.0, inv))
+        y0, y1 = r0 * BLOCK, min(height, r1 * BLOCK)
+        out[y0:y1] = depth.reshape(-1, wp)[:y1 - y0, :width]
+    return out

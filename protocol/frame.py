@@ -16,13 +16,13 @@ sent.
 from __future__ import annotations
 
 import enum
-import math
 import struct
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from quadcast.protocol.errors import ProtocolError
+from quadcast.protocol.pose import check_position, check_quat, check_time
 
 FRAME_MAGIC = b"QDCF"
 FRAME_VERSION = 2
@@ -112,13 +112,16 @@ def decode_frame_payload(data: bytes, max_bytes: int = DEFAULT_MAX_FRAME_BYTES) 
         method, ftype = Method(method), FrameType(kind & ~_SELF_CONTAINED)
     except ValueError as exc:
         raise ProtocolError(f"frame payload: {exc}") from None
-    if not all(math.isfinite(v) for v in (t, *pos, *quat)) or sum(q * q for q in quat) < 1e-12:
-        raise ProtocolError("frame payload: non-finite time/pose or zero quaternion")
+    try:  # the same bounds as a PoseUpdate's: the client renders and records this pose
+        t, pos, quat = check_time("frame payload t", t), check_position("frame payload position", pos), \
+            check_quat("frame payload quat", quat)
+    except ValueError as exc:
+        raise ProtocolError(str(exc)) from None
     if _HEADER.size + n_video + n_geom != len(data):
         raise ProtocolError(f"frame payload: header says {n_video} video + {n_geom} geometry bytes, "
                             f"message has {len(data) - _HEADER.size}")
     body = memoryview(data)[_HEADER.size:]
-    return FramePayload(method, frame_id, ftype, ref_id, t, np.array(pos), np.array(quat),
+    return FramePayload(method, frame_id, ftype, ref_id, t, pos.copy(), quat.copy(),
                         bytes(body[:n_video]), bytes(body[n_video:]), bool(kind & _SELF_CONTAINED))
 
 

@@ -16,12 +16,16 @@ message            id   body
 =================  ===  ==========================================================================
 Hello              1    version u16, width u32, height u32, fovy_deg f64, method str, token str
 Welcome            2    session_id u64, server_hz f64
-PoseUpdate         3    seq u64, t_client f64, position 3 x f64, quat 4 x f64 (xyzw)
+PoseUpdate         3    seq u64, t_client f64, position 3 x f64, quat 4 x f64 (xyzw); bounded, see below
 Frame              4    the rest of the message: an encoded :class:`quadcast.protocol.frame.FramePayload`
 ReferenceRequest   5    reason str
-ErrorMessage       6    code u16, text str
+ErrorMessage       6    code u16, text str[, retry_after_ms u32 -- only when non-zero (ErrorCode.BUSY)]
 Bye                7    (empty)
 =================  ===  ==========================================================================
+
+A PoseUpdate is accepted only if it can be rendered (:mod:`quadcast.protocol.pose`): coordinates within
++-1e5 m, a quaternion whose norm is in [1e-3, 1e3], a time within +-1e10 s; anything else is a ProtocolError
+naming the field.
 
 Typical session: client sends ``Hello``; server answers ``Welcome`` (or ``ErrorMessage`` and closes); then the
 client streams ``PoseUpdate`` s and the server ``Frame`` s; a client that lost its reference state sends
@@ -46,6 +50,7 @@ import numpy as np
 
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import DEFAULT_MAX_FRAME_BYTES, FramePayload, decode_frame_payload, encode_frame_payload
+from quadcast.protocol.pose import check_position, check_quat, check_time
 
 __all__ = [
     "PROTOCOL_VERSION",
@@ -104,6 +109,8 @@ class ErrorCode(enum.IntEnum):
     BAD_REQUEST = 4          # e.g. a resolution the server cannot render
     UNAUTHORIZED = 5         # Hello.token rejected
     INTERNAL = 6             # server-side failure
+    BUSY = 7                 # no room now (sessions or connections): try again after ErrorMessage.retry_after_s
+    TIMEOUT = 8              # no Hello in time, or no pose traffic for the idle timeout
 
 
 # --------------------------------------------------------------------------
@@ -141,19 +148,6 @@ def _check_str(name: str, value) -> str:
     if n > MAX_STRING_BYTES:
         raise ValueError(f"{name}: {n} utf-8 bytes exceeds the limit of {MAX_STRING_BYTES}")
     return value
-
-
-def _check_vec(name: str, value, n: int) -> np.ndarray:
-    try:
-        arr = np.array(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected {n} real numbers, got {value!r}") from None
-    if arr.shape != (n,):
-        raise ValueError(f"{name}: expected {n} numbers, got {arr.size}")
-    if not all(map(math.isfinite, arr.tolist())):
-        raise ValueError(f"{name}: expected finite numbers, got {arr.tolist()}")
-    arr.flags.writeable = False
-    return arr
 
 
 # --------------------------------------------------------------------------
@@ -201,7 +195,7 @@ class PoseUpdate:
     """Client -> server: the client's head pose (world position, xyzw quaternion) at client time ``t_client`` (s).
 
     ``position`` and ``quat`` are read-only float64 arrays of shape (3,) and (4,); the quaternion is sent as given
-    (not normalized) but must be finite and non-zero.
+    (not normalized). All three are bounded so that any accepted pose renders (:mod:`quadcast.protocol.pose`).
     """
 
     seq: int
@@ -211,12 +205,9 @@ class PoseUpdate:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "seq", _check_int("PoseUpdate.seq", self.seq, _U64_MAX))
-        object.__setattr__(self, "t_client", _check_float("PoseUpdate.t_client", self.t_client))
-        object.__setattr__(self, "position", _check_vec("PoseUpdate.position", self.position, 3))
-        q = _check_vec("PoseUpdate.quat", self.quat, 4)
-        if float(q @ q) < 1e-12:
-            raise ValueError(f"PoseUpdate.quat: expected a non-zero quaternion, got {q.tolist()}")
-        object.__setattr__(self, "quat", q)
+        object.__setattr__(self, "t_client", check_time("PoseUpdate.t_client", self.t_client))
+        object.__setattr__(self, "position", check_position("PoseUpdate.position", self.position))
+        object.__setattr__(self, "quat", check_quat("PoseUpdate.quat", self.quat))
 
     @classmethod
     def from_pose(cls, seq: int, t_client: float, pose) -> "PoseUpdate":
@@ -268,14 +259,22 @@ class ReferenceRequest:
 
 @dataclass(frozen=True)
 class ErrorMessage:
-    """Either direction: a fatal error (``code``: an :class:`ErrorCode` or any u16) before the sender closes."""
+    """Either direction: a fatal error (``code``: an :class:`ErrorCode` or any u16) before the sender closes.
+
+    ``retry_after_s`` (with :attr:`ErrorCode.BUSY`): when to try again, in seconds (whole milliseconds on the wire;
+    0 = not said, and then the field is not sent)."""
 
     code: int
     text: str = ""
+    retry_after_s: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "code", _check_int("ErrorMessage.code", self.code, _U16_MAX))
         object.__setattr__(self, "text", _check_str("ErrorMessage.text", self.text))
+        after = _check_float("ErrorMessage.retry_after_s", self.retry_after_s)
+        if not 0.0 <= after <= _U32_MAX / 1e3:
+            raise ValueError(f"ErrorMessage.retry_after_s: expected 0..{_U32_MAX / 1e3:g} s, got {after!r}")
+        object.__setattr__(self, "retry_after_s", round(after * 1e3) / 1e3)
 
 
 @dataclass(frozen=True)
@@ -299,6 +298,7 @@ _HELLO = struct.Struct("<HIId")
 _WELCOME = struct.Struct("<Qd")
 _POSE = struct.Struct("<Qd3d4d")
 _U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
 
 
 def _pack_str(s: str) -> bytes:
@@ -319,7 +319,8 @@ def _body(msg: Message) -> bytes:
     if isinstance(msg, ReferenceRequest):
         return _pack_str(msg.reason)
     if isinstance(msg, ErrorMessage):
-        return _U16.pack(msg.code) + _pack_str(msg.text)
+        after = _U32.pack(round(msg.retry_after_s * 1e3)) if msg.retry_after_s > 0 else b""
+        return _U16.pack(msg.code) + _pack_str(msg.text) + after
     return b""  # Bye
 
 
@@ -412,8 +413,11 @@ def decode_message_body(mtype: int, body: bytes | memoryview) -> Message:
         if t is MessageType.ERROR:
             (code,) = r.unpack(_U16, "code")
             text = r.string("text")
+            after_ms = r.unpack(_U32, "retry_after_ms")[0] if r.pos < len(r.body) else None
             r.end()
-            return ErrorMessage(code, text)
+            if after_ms == 0:
+                raise ProtocolError("ErrorMessage.retry_after_ms: 0 is said by leaving the field out")
+            return ErrorMessage(code, text, (after_ms or 0) / 1e3)
         r.end()
         return Bye()
     except ProtocolError:

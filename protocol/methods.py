@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["METHODS", "STEREO_METHODS", "MethodConfig", "check_method"]
+__all__ = ["METHODS", "STEREO_METHODS", "MethodConfig", "check_method", "MAX_ATLAS_VIEWS", "meshwarp_render_size"]
 
 METHODS = ("quasar", "quadstream", "meshwarp", "meshwarp120", "atw")
 """Every method: QUASAR, the QuadStream-like baseline, MeshWarp (60° or, as meshwarp120, 120° at twice the
@@ -15,6 +15,21 @@ resolution) and ATW."""
 
 STEREO_METHODS = ("quasar", "quadstream")
 """Methods whose client keeps the depth of what it shows (a quad mesh), so it can synthesize the second eye."""
+
+
+MAX_ATLAS_VIEWS = 16
+"""A method's video picture holds at most this many pictures of the size a client asked for (QuadStream's atlas,
+the largest, has 10.5; 120-degree MeshWarp's frame 4): a client refuses a stream declaring more."""
+
+
+def meshwarp_render_size(width: int, height: int, fovy_deg: float,
+                         render_scale: float | None = None) -> tuple[int, int]:
+    """The size MeshWarp's server renders (its video and depth map) for a ``width`` x ``height`` display: scaled
+    by ``render_scale``, by default 2 for a field of view over 90 degrees (QUASAR's 120-degree MeshWarp) and 1
+    otherwise; rounded to even sizes."""
+    if render_scale is None:
+        render_scale = 2.0 if fovy_deg > 90.0 else 1.0
+    return max(2, 2 * round(width * render_scale / 2)), max(2, 2 * round(height * render_scale / 2))
 
 
 @dataclass(frozen=True)

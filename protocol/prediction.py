@@ -30,7 +30,26 @@ from scipy.interpolate import CubicSpline
 from scipy.signal import savgol_filter
 from scipy.spatial.transform import Rotation, Slerp
 
-__all__ = ["PoseSample", "PosePredictor", "prediction_errors"]
+__all__ = ["PoseSample", "PosePredictor", "prediction_errors", "MIN_STEP_S", "MAX_SPEED", "MAX_ACCELERATION",
+           "MAX_ANGULAR_SPEED", "MAX_ANGULAR_ACCELERATION"]
+
+MIN_STEP_S = 1e-3
+"""Samples closer than this to the latest one are ignored like duplicates: finite differences over tiny steps are
+noise (and over 1e-300 s they overflow)."""
+
+MAX_SPEED = 50.0                   # m/s
+MAX_ACCELERATION = 1000.0          # m/s^2
+MAX_ANGULAR_SPEED = 8 * np.pi      # rad/s (1440 deg/s)
+MAX_ANGULAR_ACCELERATION = 1000.0  # rad/s^2
+"""Caps on the estimated derivatives (far above any head's, which stays under ~5 m/s and ~15 rad/s): whatever
+poses a client sends, the extrapolation stays finite and bounded."""
+
+
+def _clamp_norm(v: np.ndarray, limit: float) -> np.ndarray:
+    """``v`` scaled down to norm ``limit`` if longer (NaN -> zero)."""
+    v = np.nan_to_num(v, nan=0.0, posinf=limit, neginf=-limit)
+    n = float(np.linalg.norm(v))
+    return v * (limit / n) if n > limit else v
 
 
 @dataclass(frozen=True)
@@ -54,8 +73,8 @@ def _as_quat(quat: np.ndarray) -> np.ndarray:
     if q.shape != (4,) or not np.all(np.isfinite(q)):
         raise ValueError(f"quat must be a finite xyzw array of shape (4,), got shape {q.shape}: {q!r}")
     norm = np.linalg.norm(q)
-    if norm < 1e-12:
-        raise ValueError(f"quat must have non-zero norm, got {q!r}")
+    if not 1e-12 <= norm < np.inf:
+        raise ValueError(f"quat must have a non-zero, finite norm, got {q!r}")
     return q / norm
 
 
@@ -90,6 +109,10 @@ class PosePredictor:
     With fewer samples than a method needs, prediction degrades gracefully:
     one sample -> hold; two -> constant velocity; fewer than ``window`` with
     ``smooth=True`` -> the three-sample finite differences.
+
+    Whatever the samples, the prediction is finite: samples less than
+    :data:`MIN_STEP_S` after the latest are ignored, and the estimated
+    velocities and accelerations are capped (:data:`MAX_SPEED` and friends).
     """
 
     def __init__(self, history: int = 16, smooth: bool = False, window: int = 7, order: int = 2) -> None:
@@ -121,12 +144,13 @@ class PosePredictor:
 
     def observe(self, t: float, position: np.ndarray, quat: np.ndarray) -> bool:
         """Add a pose sample; returns ``False`` (and ignores it) if ``t`` is not
-        later than the latest accepted sample (out-of-order or duplicate)."""
+        at least :data:`MIN_STEP_S` later than the latest accepted sample
+        (out-of-order, duplicate or too close)."""
         t = float(t)
         if not np.isfinite(t):
             raise ValueError(f"pose time t must be finite, got {t!r}")
         p, q = _as_position(position), _as_quat(quat)
-        if self._samples and t <= self._samples[-1].t:
+        if self._samples and not t >= self._samples[-1].t + MIN_STEP_S:
             return False
         self._samples.append(PoseSample(t, p, q))
         return True
@@ -179,6 +203,8 @@ class PosePredictor:
         if not self._samples:
             raise RuntimeError("PosePredictor.predict called before any pose was observed")
         t0, p0, r0, v, a, w, alpha = self._state()
+        v, a = _clamp_norm(v, MAX_SPEED), _clamp_norm(a, MAX_ACCELERATION)
+        w, alpha = _clamp_norm(w, MAX_ANGULAR_SPEED), _clamp_norm(alpha, MAX_ANGULAR_ACCELERATION)
         dt = float(t_target) - t0
         position = p0 + v * dt + 0.5 * a * dt * dt
         rotation = Rotation.from_rotvec(w * dt + 0.5 * alpha * dt * dt) * r0

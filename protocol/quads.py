@@ -157,6 +157,8 @@ class LayerKind(enum.IntEnum):
 
 
 _LAYER_KIND_VALUES = frozenset(int(k) for k in LayerKind)
+FULL_SIZE_KINDS = frozenset({LayerKind.VISIBLE, LayerKind.UPDATED, LayerKind.REVEALED})
+"""Layers of the view itself, always at the size the client asked for."""
 
 
 # --------------------------------------------------------------------------
@@ -318,6 +320,15 @@ class QuadSet:
         return index
 
     @classmethod
+    def _decoded(cls, **columns: np.ndarray) -> QuadSet:
+        """A QuadSet over columns the blob decoder made and checked itself (no copies: decoding a frame costs
+        its output, not twice that)."""
+        obj = object.__new__(cls)
+        for name, value in columns.items():
+            object.__setattr__(obj, name, value)
+        return obj
+
+    @classmethod
     def empty(cls) -> QuadSet:
         """A QuadSet holding no quads."""
         return cls(
@@ -447,8 +458,24 @@ def pack_normals(normals: Any) -> tuple[np.ndarray, np.ndarray]:
     return theta_code, phi_code
 
 
+_NORMAL_TABLE: np.ndarray | None = None
+
+
+def _normal_table() -> np.ndarray:
+    """float32 (256 * 256, 3): the unit normal of every (theta code << 8 | phi code), computed once in float64."""
+    global _NORMAL_TABLE
+    if _NORMAL_TABLE is None:
+        theta = np.arange(256, dtype=np.float64)[:, None] * (math.pi / _THETA_STEPS)
+        phi = np.arange(256, dtype=np.float64)[None, :] * (2.0 * math.pi / _PHI_STEPS) - math.pi
+        sin_t = np.sin(theta)
+        table = np.stack(np.broadcast_arrays(sin_t * np.cos(phi), sin_t * np.sin(phi), np.cos(theta)), axis=-1)
+        _NORMAL_TABLE = np.ascontiguousarray(table.reshape(-1, 3).astype(np.float32))
+    return _NORMAL_TABLE
+
+
 def unpack_normals(theta_code: Any, phi_code: Any) -> np.ndarray:
-    """Unit normals float32 (N, 3) from the uint8 angle codes of :func:`pack_normals`."""
+    """Unit normals float32 (N, 3) from the uint8 angle codes of :func:`pack_normals` (a table look-up: no
+    float64 temporaries, so decoding a frame needs little more memory than its output)."""
     t = np.asarray(theta_code)
     p = np.asarray(phi_code)
     if t.dtype != np.uint8 or p.dtype != np.uint8 or t.shape != p.shape or t.ndim != 1:
@@ -456,10 +483,9 @@ def unpack_normals(theta_code: Any, phi_code: Any) -> np.ndarray:
             f"unpack_normals: expected two uint8 arrays of equal 1-D shape, "
             f"got {t.dtype}{t.shape} and {p.dtype}{p.shape}"
         )
-    theta = t.astype(np.float64) * (math.pi / _THETA_STEPS)
-    phi = p.astype(np.float64) * (2.0 * math.pi / _PHI_STEPS) - math.pi
-    sin_t = np.sin(theta)
-    return np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), np.cos(theta)], axis=1).astype(np.float32)
+    index = t.astype(np.uint16) << np.uint16(8)
+    index |= p
+    return _normal_table()[index]
 
 
 # --------------------------------------------------------------------------
@@ -518,6 +544,9 @@ class QuadLayer:
         rect = tuple(_u_int(f"QuadLayer.atlas_rect[{i}]", v, 0, 0xFFFF) for i, v in enumerate(rect))
         if not isinstance(self.quads, QuadSet):
             raise ValueError(f"QuadLayer.quads: expected a QuadSet, got {type(self.quads).__name__}")
+        if len(self.quads) > width * height:      # what decode_quad_frame refuses, never written
+            raise ValueError(f"QuadLayer.quads: {len(self.quads)} quads in a {width}x{height} layer "
+                             f"(at most one per pixel)")
         for axis, limit, column in (("x", width, self.quads.x), ("y", height, self.quads.y)):
             bad_rows = np.flatnonzero(column >= limit)
             if bad_rows.size:
@@ -677,12 +706,18 @@ def decode_quad_frame(
     *,
     max_quads: int = DEFAULT_MAX_QUADS,
     max_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
+    size: tuple[int, int] | None = None,
 ) -> QuadFrame:
     """Parse a blob made by :func:`encode_quad_frame`.
 
     ``max_quads`` caps the total quad count over all layers and ``max_bytes``
-    the uncompressed payload size; both are checked from the headers before
-    anything is decompressed or allocated.  Any malformed, truncated,
+    the uncompressed payload size; ``size`` is the (width, height) the
+    receiver asked for: the layers of the view itself (visible, updated,
+    revealed) must then be that size, the others (hidden layers and the wide
+    view, sent at reduced size) at most that size. A layer never holds more quads than
+    it has pixels. All of it is checked from the headers before anything is
+    decompressed or allocated, and decoding then needs about its output's
+    memory (plus the decompressed payload).  Any malformed, truncated,
     inconsistent or over-limit input raises :class:`ProtocolError`.
     """
     try:
@@ -716,6 +751,16 @@ def decode_quad_frame(
             raise ProtocolError(f"layer[{i}].kind: expected one of {[int(k) for k in LayerKind]}, got {kind}")
         if width == 0 or height == 0:
             raise ProtocolError(f"layer[{i}]: expected a non-empty image, got {width}x{height}")
+        if size is not None:
+            w, h = size
+            if kind in FULL_SIZE_KINDS and (width, height) != (w, h):
+                raise ProtocolError(f"layer[{i}]: {width}x{height}, expected the {w}x{h} asked for")
+            if not (width <= w and height <= h):
+                raise ProtocolError(f"layer[{i}]: a {LayerKind(kind).name.lower()} layer of {width}x{height}, "
+                                    f"larger than the {w}x{h} asked for")
+        if quad_count > width * height:
+            raise ProtocolError(f"layer[{i}].quad_count: {quad_count} quads in a {width}x{height} layer "
+                                f"(at most one per pixel)")
         if offset_count > quad_count:
             raise ProtocolError(
                 f"layer[{i}].offset_count: expected <= quad count {quad_count}, got {offset_count}"
@@ -751,11 +796,14 @@ def decode_quad_frame(
     words = take("<u4", total_quads)
     theta = take("u1", total_quads)
     phi = take("u1", total_quads)
-    depth = take("<f4", total_quads).astype(np.float32)
-    offsets = take("<f2", total_offsets * OFFSETS_PER_QUAD).astype(np.float16).reshape(-1, OFFSETS_PER_QUAD)
-
+    depth = take("<f4", total_quads).astype(np.float32, copy=False)
+    offsets = take("<f2", total_offsets * OFFSETS_PER_QUAD).astype(np.float16, copy=False).reshape(
+        -1, OFFSETS_PER_QUAD)
+    del raw
     fields_all = unpack_quad_words(words)
+    del words
     normals = unpack_normals(theta, phi)
+    del theta, phi
 
     layers: list[QuadLayer] = []
     q0 = o0 = 0
@@ -772,22 +820,25 @@ def decode_quad_frame(
             raise ProtocolError(
                 f"layer[{i}].quads.size_log2[{int(bad[0])}]: expected 0..{MAX_SIZE_LOG2}, got {size_log2[bad[0]]}"
             )
-        non_flattened = int(quad_count - np.count_nonzero(fields_all.flattened[sl]))
+        flattened = fields_all.flattened[sl]
+        non_flattened = int(quad_count - np.count_nonzero(flattened))
         if non_flattened != offset_count:
             raise ProtocolError(
                 f"layer[{i}].offset_count: expected {non_flattened} (non-flattened quads), got {offset_count}"
             )
+        # What QuadSet checks of its inputs, on views of the decoded columns (normals are unit by construction).
+        bad_depth = _first_nonfinite(depth[sl])
+        if bad_depth is not None:
+            raise ProtocolError(f"layer[{i}]: QuadSet.depth[{bad_depth[0]}]: expected a finite float32, "
+                                f"got {depth[sl][bad_depth]}")
+        bad_offset = _first_nonfinite(offsets[o0:o1])
+        if bad_offset is not None:
+            raise ProtocolError(f"layer[{i}]: QuadSet.offsets[{_index_str(bad_offset)}]: expected a finite float16 "
+                                f"(|v| <= 65504), got {offsets[o0:o1][bad_offset]}")
+        quads = QuadSet._decoded(x=fields_all.x[sl], y=fields_all.y[sl], size_log2=size_log2, flattened=flattened,
+                                 alpha=fields_all.alpha[sl], normal=normals[sl], depth=depth[sl],
+                                 offsets=offsets[o0:o1])
         try:
-            quads = QuadSet(
-                x=fields_all.x[sl],
-                y=fields_all.y[sl],
-                size_log2=size_log2,
-                flattened=fields_all.flattened[sl],
-                alpha=fields_all.alpha[sl],
-                normal=normals[sl],
-                depth=depth[sl],
-                offsets=offsets[o0:o1],
-            )
             layers.append(
                 QuadLayer(kind=LayerKind(kind), width=width, height=height, camera=camera, atlas_rect=rect, quads=quads)
             )

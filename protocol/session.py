@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from quadcast.protocol.pose import MAX_POSITION_M, MAX_TIME_S
 from quadcast.protocol.prediction import PosePredictor
 
 __all__ = ["ServerSessionConfig", "ServerSession", "ServerCounters", "EncodeFrame", "FrameQueue", "QueueCounters",
@@ -108,7 +109,10 @@ class ServerSessionConfig:
     clock when it is known (0 in virtual time, where both share one clock); ``None`` estimates it from the newest
     pose (its ``t_client`` minus its arrival time), as a live server must. Frames start at least
     ``min_frame_interval_s`` apart (a flood guard: poses that come faster coalesce, and the frame for the newest one
-    starts when the interval has passed -- see :meth:`ServerSession.timer`).
+    starts when the interval has passed -- see :meth:`ServerSession.timer`). ``idle_timeout_s``: a session whose
+    client sent no *pose traffic* for this long is to be ended (:meth:`ServerSession.idle_deadline`); only a pose
+    the predictor takes (valid, newer than the last by at least its minimum step) counts -- reference requests,
+    repeated or stale poses do not (None: never).
     """
 
     predict: bool = True
@@ -119,8 +123,12 @@ class ServerSessionConfig:
     clock_offset_s: float | None = None
     queue_frames: int = 3
     min_frame_interval_s: float = 0.0
+    idle_timeout_s: float | None = None
 
     def __post_init__(self) -> None:
+        if self.idle_timeout_s is not None and not (np.isfinite(self.idle_timeout_s) and self.idle_timeout_s > 0):
+            raise ValueError(f"ServerSessionConfig.idle_timeout_s: expected a finite number > 0 or None, "
+                             f"got {self.idle_timeout_s!r}")
         for name in ("downlink_s", "max_prediction_s", "encode_s", "min_frame_interval_s"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -172,8 +180,13 @@ class ServerSession:
         self._encoding = False
         self._pose_pending = False
         self._last_start: float | None = None
+        self._last_traffic: float | None = None     # driver clock of the session's start / newest pose taken
 
     # -- events
+
+    def opened(self, now: float) -> None:
+        """The session started (its client was welcomed): the idle clock starts."""
+        self._last_traffic = float(now)
 
     def pose_received(self, now: float, t_client: float, position, quat) -> EncodeFrame | None:
         """A client pose arrived at ``now``. Raises ValueError for a pose the predictor cannot use."""
@@ -183,6 +196,7 @@ class ServerSession:
             return None
         latest = self.predictor.latest
         self._latest = (float(now), latest.t, latest.position, latest.quat)
+        self._last_traffic = float(now)
         self._pose_pending = True
         return self._maybe_start(now)
 
@@ -212,6 +226,13 @@ class ServerSession:
     def handle_timer(self, now: float) -> EncodeFrame | None:
         """The time :meth:`timer` named has come."""
         return self._maybe_start(now)
+
+    def idle_deadline(self) -> float | None:
+        """When the session is to be ended for want of pose traffic (driver clock), or None (no idle timeout, or
+        not :meth:`opened`). Only poses the predictor takes move it (see :class:`ServerSessionConfig`)."""
+        if self.config.idle_timeout_s is None or self._last_traffic is None:
+            return None
+        return self._last_traffic + self.config.idle_timeout_s
 
     def next_to_send(self) -> Any | None:
         """The next frame for the transport, in order (None when the queue is empty)."""
@@ -243,14 +264,19 @@ class ServerSession:
         cfg = self.config
         lead = min(self.encode_estimate_s + cfg.downlink_s, cfg.max_prediction_s)
         display_t = self.client_clock(now) + lead
+        _, _, position, quat = self._latest
         if cfg.predict:
-            position, quat = self.predictor.predict(display_t)
-        else:
-            _, _, position, quat = self._latest
+            predicted = self.predictor.predict(display_t)
+            # the predictor's output is finite by construction; should it ever not be, render the pose as received
+            if all(np.all(np.isfinite(v)) for v in predicted) and np.linalg.norm(predicted[1]) > 0.5:
+                position, quat = predicted
         reference, self._want_reference = self._want_reference, False
         self._encoding = True
-        return EncodeFrame(np.asarray(position, np.float64), np.asarray(quat, np.float64), float(display_t),
-                           reference, float(now))
+        # a decision is always a pose the wire format accepts (the client checks the frame's pose as we check
+        # the client's): extrapolation past the edge of the range stops at it
+        position = np.clip(np.asarray(position, np.float64), -MAX_POSITION_M, MAX_POSITION_M)
+        display_t = float(np.clip(display_t, -MAX_TIME_S, MAX_TIME_S))
+        return EncodeFrame(position, np.asarray(quat, np.float64), display_t, reference, float(now))
 
 
 # ------------------------------------------------------------------------------------------------ client

@@ -33,9 +33,10 @@ class Pose:
     def __post_init__(self):
         object.__setattr__(self, "position", _vec3(self.position, "Pose.position"))
         q = np.asarray(self.quat, dtype=np.float64).reshape(-1)
-        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
-            raise ValueError(f"Pose.quat: expected a non-zero quaternion (x, y, z, w), got {self.quat!r}")
-        object.__setattr__(self, "quat", q / np.linalg.norm(q))
+        norm = np.linalg.norm(q) if q.shape == (4,) else 0.0
+        if q.shape != (4,) or not np.all(np.isfinite(q)) or not 1e-9 <= norm < np.inf:  # 1e200s overflow it
+            raise ValueError(f"Pose.quat: expected a non-zero quaternion (x, y, z, w) of finite norm, got {self.quat!r}")
+        object.__setattr__(self, "quat", q / norm)
 
     @classmethod
     def from_euler(cls, position, pitch_deg: float, yaw_deg: float, roll_deg: float = 0.0) -> "Pose":

@@ -19,9 +19,17 @@ The method's server half comes from the ``make_server(name, renderer, config)`` 
 Robustness: a malformed message or any failure ends only its session, after an :class:`ErrorMessage` (a worker
 process that dies -- killed, crashed -- ends its session with ``ErrorCode.INTERNAL`` naming it); worker processes
 are terminated when their session ends and when the server closes, and die with the server; incoming
-messages are capped at ``max_message_bytes``; at most ``max_sessions`` sessions run at once; a connection that
-sends no Hello within ``handshake_timeout`` is closed. The server binds 127.0.0.1 unless told otherwise, and
-refuses any other bind without a shared-secret token.
+messages are capped at ``max_message_bytes``.
+
+Limits (:class:`quadcast.protocol.admission.ServerLimits`, one :class:`~quadcast.protocol.admission.Admission`
+for every listener): at most ``max_preauth`` connections awaiting their handshake and ``max_per_ip`` connections
+per address (others are closed at once); a connection must finish its TLS handshake and Hello within
+``handshake_timeout``; at most ``max_sessions`` sessions run, and a Hello beyond that is answered
+``ErrorCode.BUSY`` with a retry-after; a session whose client sends no pose for ``idle_timeout`` is ended
+(``ErrorCode.TIMEOUT``; only pose traffic counts, see the session core).
+
+Security: the server binds 127.0.0.1 unless told otherwise, and refuses any other bind without a shared-secret
+token, and a token without TLS (``tls_cert``/``tls_key``) unless ``allow_plaintext_token``.
 """
 from __future__ import annotations
 
@@ -32,20 +40,23 @@ import ipaddress
 import itertools
 import logging
 import os
+import ssl
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
+from quadcast.protocol.admission import Admission, Refusal, ServerLimits, Ticket
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import encode_frame_payload
 from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
-                                        ReferenceRequest, Welcome)
+                                        ReferenceRequest, Welcome, encode_message)
 from quadcast.protocol.methods import METHODS, MethodConfig
 from quadcast.protocol.session import EncodeFrame, ServerCounters, ServerSession, ServerSessionConfig
 from quadcast.render.camera import Pose
 from quadcast.render.worker import GLWorker, ProcessWorker, WorkerDied, WorkerError
 from quadcast.transport.channel import Channel, TcpChannel
+from quadcast.transport.tls import server_context
 
 __all__ = ["ServerConfig", "PipelineSpec", "SessionPipeline", "Session", "LiveServer", "check_bind"]
 
@@ -71,11 +82,19 @@ class ServerConfig:
     predict: bool = True
     max_prediction_s: float = 0.5       # never extrapolate the pose further ahead (the predictor is kinematic)
     max_frame_hz: float = 60.0          # flood guard: frames start at most this often, however fast poses come
-    max_sessions: int = 4
+    max_sessions: int = 4               # limits: see quadcast.protocol.admission.ServerLimits
+    max_preauth: int = 32
+    max_per_ip: int = 8
+    handshake_timeout: float = 10.0
+    idle_timeout: float = 20.0          # a session whose client sends no pose for this long is closed
+    retry_after: float = 5.0            # a busy server's hint to the client
     max_message_bytes: int = 64 * 1024  # client -> server messages are small (Hello, poses, requests)
     queue_frames: int = 3               # per-session send queue
-    handshake_timeout: float = 10.0
-    idle_timeout: float = 30.0          # a session that sends nothing for this long is closed
+    tls_cert: str | None = None         # PEM certificate chain: serve TLS (TCP, and WebRTC's signalling)
+    tls_key: str | None = None          # its PEM private key (None: in tls_cert)
+    allow_plaintext_token: bool = False  # a token on a non-loopback bind needs TLS unless this is set
+    max_peer_connections: int = 8       # WebRTC: peer connections at once (open or opening)
+    stun: str | None = None             # WebRTC: a STUN server URL (default: none, host candidates only)
     worker: str = "process"             # where a session renders and encodes: "process" or "thread"
     worker_start_timeout: float = 60.0  # a session's worker must be ready (GL context, scene, server) by then
     spare_workers: int = 2              # worker processes kept booted for the next sessions (worker="process")
@@ -93,26 +112,51 @@ class ServerConfig:
             raise ValueError(f"max_frame_hz: expected 0 < hz <= 1000, got {self.max_frame_hz}")
         if not 0 <= self.spare_workers <= 8:
             raise ValueError(f"--spare-workers: expected 0..8, got {self.spare_workers}")
-        if self.max_sessions < 1 or self.queue_frames < 1:
-            raise ValueError("--max-sessions and the queue length must be >= 1")
-        check_bind(self.host, self.token)
+        if self.queue_frames < 1 or self.max_peer_connections < 1:
+            raise ValueError("--max-peer-connections and the queue length must be >= 1")
+        if self.tls_key is not None and self.tls_cert is None:
+            raise ValueError("--tls-key needs --tls-cert")
+        self.limits()                    # ValueError naming a bad limit
+        check_bind(self.host, self.token, tls=self.tls_cert is not None,
+                   allow_plaintext_token=self.allow_plaintext_token)
+
+    def limits(self) -> ServerLimits:
+        """The admission limits."""
+        return ServerLimits(max_sessions=self.max_sessions, max_preauth=self.max_preauth, max_per_ip=self.max_per_ip,
+                            handshake_timeout_s=self.handshake_timeout, idle_timeout_s=self.idle_timeout,
+                            retry_after_s=self.retry_after)
+
+    def ssl_context(self) -> ssl.SSLContext | None:
+        """The server's TLS context, or None without ``tls_cert``."""
+        return None if self.tls_cert is None else server_context(self.tls_cert, self.tls_key)
 
     def session_config(self) -> ServerSessionConfig:
         """The session core's settings: the client's clock is estimated from its poses."""
         return ServerSessionConfig(predict=self.predict, downlink_s=self.lead_ms / 1e3,
                                    max_prediction_s=self.max_prediction_s, queue_frames=self.queue_frames,
-                                   min_frame_interval_s=1.0 / self.max_frame_hz)
+                                   min_frame_interval_s=1.0 / self.max_frame_hz, idle_timeout_s=self.idle_timeout)
 
 
-def check_bind(host: str, token: str) -> None:
-    """Refuse to listen on a non-loopback address without a shared-secret token."""
+def check_bind(host: str, token: str, tls: bool = False, allow_plaintext_token: bool = False) -> None:
+    """Refuse to listen on a non-loopback address without a shared-secret token, or with a token that would
+    cross the network in clear (no TLS) unless ``allow_plaintext_token``."""
     try:
         loopback = ipaddress.ip_address(host).is_loopback
     except ValueError:
         loopback = host == "localhost"
-    if not loopback and not token:
+    if loopback:
+        return
+    if not token:
         raise ValueError(f"--host {host}: binding a non-loopback address needs --token (a shared secret that "
                          f"clients send in Hello)")
+    if not tls and not allow_plaintext_token:
+        raise ValueError(f"--host {host}: the token would cross the network in clear; serve TLS (--tls-cert and "
+                         f"--tls-key) or accept that with --allow-plaintext-token")
+
+
+def peer_ip(peer: str) -> str:
+    """The address part of a ``host:port`` peer string."""
+    return peer.rpartition(":")[0].strip("[]") or peer
 
 
 # -------------------------------------------------------------------------------------------- pipeline
@@ -272,17 +316,21 @@ class _ProcessWorker:
 class SessionError(Exception):
     """Ends a session with an ErrorMessage(code, text)."""
 
-    def __init__(self, code: int, text: str) -> None:
+    def __init__(self, code: int, text: str, retry_after_s: float = 0.0) -> None:
         super().__init__(text)
-        self.code = code
+        self.code, self.retry_after_s = code, retry_after_s
 
 
 class Session:
     """One client over a :class:`Channel`: the handshake, then the session core's decisions run by three tasks --
     the reader (poses and requests in), the encoder (one frame at a time on the worker) and the sender."""
 
-    def __init__(self, server: "LiveServer", channel: Channel, session_id: int) -> None:
+    def __init__(self, server: "LiveServer", channel: Channel, session_id: int, ticket: Ticket,
+                 handshake_deadline: float | None = None) -> None:
+        """``ticket``: the connection's place in the server's admission (admitted here once its Hello passes);
+        ``handshake_deadline``: loop time by which the Hello must have come (default: handshake_timeout from now)."""
         self.server, self.channel, self.id = server, channel, session_id
+        self.ticket, self.handshake_deadline = ticket, handshake_deadline
         self.cfg = server.config
         self.core = ServerSession(self.cfg.session_config())
         self.worker: _ThreadWorker | _ProcessWorker | None = None
@@ -313,9 +361,7 @@ class Session:
         cfg = self.cfg
         spec = PipelineSpec(self.server.make_server, cfg.scene, hello.method, hello.width, hello.height,
                             hello.fovy_deg, cfg.viewcell_m, cfg.reference_every, cfg.crf)
-        name = f"session-{self.id}"
-        self.worker = (_ProcessWorker(name, spec, self.server.claim_process()) if cfg.worker == "process"
-                       else _ThreadWorker(name, spec, self.server.scene))
+        self.worker = self.server.make_worker(f"session-{self.id}", spec)
         self.server.workers.add(self.worker)
         try:
             await self.worker.start(cfg.worker_start_timeout)
@@ -328,38 +374,40 @@ class Session:
     async def run(self) -> None:
         """The whole session; never raises (errors end it with an ErrorMessage)."""
         tasks: list[asyncio.Task] = []
+        loop = asyncio.get_running_loop()
         try:
+            deadline = self.handshake_deadline
+            if deadline is None:
+                deadline = loop.time() + self.cfg.handshake_timeout
             try:
-                msg = await asyncio.wait_for(self.channel.recv(), self.cfg.handshake_timeout)
+                msg = await asyncio.wait_for(self.channel.recv(), max(0.0, deadline - loop.time()))
             except asyncio.TimeoutError:
-                raise SessionError(ErrorCode.PROTOCOL, f"no Hello within {self.cfg.handshake_timeout:g} s") from None
+                raise SessionError(ErrorCode.TIMEOUT, f"no Hello within {self.cfg.handshake_timeout:g} s") from None
             if msg is None:
                 return
             if not isinstance(msg, Hello):
                 raise SessionError(ErrorCode.PROTOCOL, f"expected Hello first, got {type(msg).__name__}")
             self._check_hello(msg)
-            if self.server.active >= self.cfg.max_sessions:
-                raise SessionError(ErrorCode.BAD_REQUEST, f"server full ({self.cfg.max_sessions} sessions)")
-            self.server.active += 1
-            try:
-                await self._start_worker(msg)
-                await self.channel.send(Welcome(self.id, self.cfg.server_hz))
-                log.info("session %d (%s): %s %dx%d, worker %s pid %d (event loop pid %d)", self.id,
-                         self.channel.peer, msg.method, msg.width, msg.height, self.worker.kind, self.worker.pid,
-                         os.getpid())
-                tasks = [asyncio.create_task(self._reader(), name=f"s{self.id}-reader"),
-                         asyncio.create_task(self._encoder(), name=f"s{self.id}-encoder"),
-                         asyncio.create_task(self._sender(), name=f"s{self.id}-sender"),
-                         asyncio.create_task(self._watch_worker(), name=f"s{self.id}-watch")]
-                done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-                for t in done:
-                    if not t.cancelled() and t.exception() is not None:
-                        raise t.exception()
-            finally:
-                self.server.active -= 1
+            refusal = self.ticket.admit()
+            if refusal is not None:
+                raise SessionError(refusal.code, refusal.text, refusal.retry_after_s)
+            await self._start_worker(msg)
+            await self.channel.send(Welcome(self.id, self.cfg.server_hz))
+            self.core.opened(loop.time())
+            log.info("session %d (%s): %s %dx%d, worker %s pid %d (event loop pid %d)", self.id,
+                     self.channel.peer, msg.method, msg.width, msg.height, self.worker.kind, self.worker.pid,
+                     os.getpid())
+            tasks = [asyncio.create_task(self._reader(), name=f"s{self.id}-reader"),
+                     asyncio.create_task(self._encoder(), name=f"s{self.id}-encoder"),
+                     asyncio.create_task(self._sender(), name=f"s{self.id}-sender"),
+                     asyncio.create_task(self._watch_worker(), name=f"s{self.id}-watch")]
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+            for t in done:
+                if not t.cancelled() and t.exception() is not None:
+                    raise t.exception()
         except SessionError as exc:
             log.warning("session %d (%s): %s", self.id, self.channel.peer, exc)
-            await self._send_error(exc.code, str(exc))
+            await self._send_error(exc.code, str(exc), exc.retry_after_s)
         except ProtocolError as exc:
             log.warning("session %d (%s): malformed input: %s", self.id, self.channel.peer, exc)
             await self._send_error(ErrorCode.PROTOCOL, f"malformed message: {exc}")
@@ -374,6 +422,7 @@ class Session:
             await asyncio.gather(*tasks, return_exceptions=True)
             await self.channel.close()
             await self._release()
+            self.ticket.close()              # the session slot is free once its worker is gone
             c, q = self.core.counters, self.core.queue.counters
             self.server.session_ended(c)
             log.info("session %d ended: %d poses, %d frames encoded (mean %.0f ms each), %d sent (%d bytes), "
@@ -381,9 +430,9 @@ class Session:
                      c.encode_s_total * 1e3 / max(c.frames_encoded, 1), self.frames_sent, self.bytes_sent,
                      c.reference_requests, q.dropped_stale, q.dropped_new)
 
-    async def _send_error(self, code: int, text: str) -> None:
+    async def _send_error(self, code: int, text: str, retry_after_s: float = 0.0) -> None:
         try:
-            await asyncio.wait_for(self.channel.send(ErrorMessage(int(code), text[:1000])), 2.0)
+            await asyncio.wait_for(self.channel.send(ErrorMessage(int(code), text[:1000], retry_after_s)), 2.0)
         except Exception:  # noqa: BLE001 -- the peer may be gone already
             pass
 
@@ -401,10 +450,16 @@ class Session:
     async def _reader(self) -> None:
         loop = asyncio.get_running_loop()
         while True:
+            deadline = self.core.idle_deadline()       # moved only by poses the core takes
             try:
-                msg = await asyncio.wait_for(self.channel.recv(), self.cfg.idle_timeout)
+                msg = await asyncio.wait_for(self.channel.recv(),
+                                             None if deadline is None else max(0.0, deadline - loop.time()))
             except asyncio.TimeoutError:
-                raise SessionError(ErrorCode.PROTOCOL, f"nothing received for {self.cfg.idle_timeout:g} s") from None
+                deadline = self.core.idle_deadline()
+                if deadline is not None and loop.time() >= deadline:
+                    raise SessionError(ErrorCode.TIMEOUT, f"no pose received for {self.cfg.idle_timeout:g} s "
+                                                          f"(only poses keep a session open)") from None
+                continue
             if msg is None or isinstance(msg, Bye):
                 return
             if isinstance(msg, PoseUpdate):
@@ -483,7 +538,8 @@ class LiveServer:
         self.totals = ServerCounters()      # of the sessions that ended
         self.sessions_ended = 0
         self.scene = load_scene(config.scene)
-        self.active = 0
+        self.admission = Admission(config.limits())   # every listener's connections and sessions
+        self.ssl = config.ssl_context()
         self.workers: set = set()          # the sessions' live workers (killed at close if still there)
         self._ids = itertools.count(1)
         self._sessions: set[asyncio.Task] = set()
@@ -499,6 +555,17 @@ class LiveServer:
             return
         while len(self._spares) < self.config.spare_workers:
             self._spares.append(ProcessWorker(SessionHost, (self.config.scene,), "session-worker"))
+
+    @property
+    def active(self) -> int:
+        """Sessions running now."""
+        return self.admission.sessions
+
+    def make_worker(self, name: str, spec: PipelineSpec) -> "_ProcessWorker | _ThreadWorker":
+        """A new session's worker (not started): a spare worker process, or a GL thread (``worker="thread"``)."""
+        if self.config.worker == "process":
+            return _ProcessWorker(name, spec, self.claim_process())
+        return _ThreadWorker(name, spec, self.scene)
 
     def claim_process(self) -> ProcessWorker:
         """A worker process for a new session: the oldest (warmest) spare, or a new one; spares are refilled."""
@@ -539,9 +606,11 @@ class LiveServer:
         if self.transport == "tcp":
             self._tcp = await asyncio.start_server(self._on_tcp, cfg.host, cfg.port, limit=1 << 16)
         else:
-            from quadcast.transport.webrtc import WebRtcListener
+            from quadcast.transport.webrtc import SignallingPolicy, WebRtcListener
+            policy = SignallingPolicy(token=cfg.token, ssl=self.ssl, admission=self.admission,
+                                      max_peer_connections=cfg.max_peer_connections, stun=cfg.stun)
             self._rtc = WebRtcListener(cfg.host, cfg.port, self.serve_channel,
-                                       max_message_bytes=cfg.max_message_bytes)
+                                       max_message_bytes=cfg.max_message_bytes, policy=policy)
             await self._rtc.start()
 
     async def _close_spares(self) -> None:
@@ -551,28 +620,68 @@ class LiveServer:
             await asyncio.get_running_loop().run_in_executor(None, lambda s=spare: s.close(timeout=1.0))
 
     async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        # the first bytes tell a binary-protocol client from a browser (HTTP: the viewer page, its WebSocket)
+        """An accepted TCP connection: admission first (nothing is read before), then TLS, then the session -- or,
+        when its first bytes are an HTTP request, the browser viewer (server/web.py)."""
         from quadcast.server.web import serve_web, starts_http
+        peer = writer.get_extra_info("peername")
+        peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
+        ticket = self.admission.open(peer_ip(peer))
+        if isinstance(ticket, Refusal):
+            log.info("connection from %s refused: %s", peer, ticket.text)
+            if self.ssl is None:         # in clear the refusal costs one write; under TLS just close
+                writer.write(encode_message(ErrorMessage(int(ticket.code), ticket.text, ticket.retry_after_s)))
+            writer.close()
+            return
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.config.handshake_timeout
         try:
-            first = await asyncio.wait_for(reader.readexactly(4), self.config.handshake_timeout)
-        except asyncio.IncompleteReadError as exc:
-            first = exc.partial
-        except (asyncio.TimeoutError, ConnectionError, OSError):
-            first = b""          # the session's own handshake timeout ends it with an ErrorMessage
-        if starts_http(first):
-            await serve_web(self, reader, writer, first)
-        else:
-            await self.serve_channel(TcpChannel(reader, writer, self.config.max_message_bytes, initial=first))
+            if self.ssl is not None:
+                try:
+                    # (its own timeout: wrapped in wait_for, start_tls never completes on Python 3.11)
+                    await writer.start_tls(self.ssl, ssl_handshake_timeout=self.config.handshake_timeout)
+                except (asyncio.TimeoutError, ssl.SSLError, ConnectionError, OSError) as exc:
+                    log.info("connection from %s: TLS handshake failed: %s", peer,
+                             exc or "timed out")
+                    writer.close()
+                    return
+            # the first bytes tell a binary-protocol client from a browser (HTTP: the viewer page, its WebSocket)
+            try:
+                first = await asyncio.wait_for(reader.readexactly(4), max(0.0, deadline - loop.time()))
+            except asyncio.IncompleteReadError as exc:
+                first = exc.partial
+            except (asyncio.TimeoutError, ConnectionError, OSError):
+                first = b""          # the session's own handshake timeout ends it with an ErrorMessage
+            if starts_http(first):
+                await serve_web(self, reader, writer, first, ticket)
+            else:
+                await self.serve_channel(TcpChannel(reader, writer, self.config.max_message_bytes, initial=first),
+                                         ticket, deadline)
+        finally:
+            ticket.close()
 
-    async def serve_channel(self, channel: Channel) -> None:
-        """Run one session on an accepted channel until it ends."""
+    async def serve_channel(self, channel: Channel, ticket: Ticket | None = None,
+                            handshake_deadline: float | None = None) -> None:
+        """Run one session on an accepted channel until it ends (``ticket``: its admission, taken here from the
+        channel's peer address when not given)."""
+        if ticket is None:
+            ticket = self.admission.open(peer_ip(channel.peer))
+            if isinstance(ticket, Refusal):
+                log.info("connection from %s refused: %s", channel.peer, ticket.text)
+                try:
+                    await asyncio.wait_for(channel.send(ErrorMessage(int(ticket.code), ticket.text,
+                                                                     ticket.retry_after_s)), 2.0)
+                except Exception:  # noqa: BLE001 -- the peer may be gone already
+                    pass
+                await channel.close()
+                return
         task = asyncio.current_task()
         self._sessions.add(task)
         try:
-            await Session(self, channel, next(self._ids)).run()
+            await Session(self, channel, next(self._ids), ticket, handshake_deadline).run()
         except asyncio.CancelledError:
             pass            # server shutdown: the session cleaned up in its finally; end this task normally
         finally:
+            ticket.close()
             self._sessions.discard(task)
 
     async def close(self) -> None:
@@ -605,6 +714,6 @@ class LiveServer:
 
 def server_summary_line(server: LiveServer) -> str:
     cfg = server.config
-    return (f"server: listening on {cfg.host}:{server.port} ({server.transport}), scene {cfg.scene}, "
-            f"methods {','.join(cfg.methods)}, {cfg.server_hz:g} Hz")
+    return (f"server: listening on {cfg.host}:{server.port} ({server.transport}{', TLS' if server.ssl else ''}), "
+            f"scene {cfg.scene}, methods {','.join(cfg.methods)}, {cfg.server_hz:g} Hz")
 

@@ -15,6 +15,7 @@ import time
 
 from quadcast.protocol.depth import encode_depth
 from quadcast.protocol.frame import FramePayload, FrameStats, FrameType, Method
+from quadcast.protocol.methods import meshwarp_render_size
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.renderer import DeferredRenderer
 from quadcast.server.method import MethodServer
@@ -123,8 +124,7 @@ class MeshWarpServer(_VideoBaselineServer):
             raise ValueError(f"MeshWarpServer: depth_level (zstd) must be in 1..22, got {depth_level}")
         self.render_scale = float(render_scale)
         self.depth_level = int(depth_level)
-        w = max(2, 2 * round(width * render_scale / 2))
-        h = max(2, 2 * round(height * render_scale / 2))
+        w, h = meshwarp_render_size(width, height, fovy, render_scale)
         super().__init__(renderer, w, h, fovy, video, keyframe_interval, near, far)
 
     def _geometry(self, frame, ms: dict) -> bytes:

@@ -98,8 +98,10 @@ def _config_json(server) -> bytes:
                        "token_required": bool(cfg.token), "start": _start_pose(server)}).encode()
 
 
-async def serve_web(server, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, initial: bytes) -> None:
-    """Answer one HTTP request on an accepted connection (see the module docstring); never raises."""
+async def serve_web(server, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, initial: bytes,
+                    ticket=None) -> None:
+    """Answer one HTTP request on an accepted connection (see the module docstring); never raises. `ticket` is the
+    connection's admission (server/app.py), which a WebSocket session keeps."""
     cfg = server.config
     peername = writer.get_extra_info("peername")
     peer = f"{peername[0]}:{peername[1]}" if isinstance(peername, tuple) else str(peername)
@@ -127,7 +129,7 @@ async def serve_web(server, reader: asyncio.StreamReader, writer: asyncio.Stream
                 log.info("http %s: %s", peer, exc)
                 return
             handed_over = True
-            await server.serve_channel(channel)     # the session closes the channel
+            await server.serve_channel(channel, ticket)     # the session closes the channel
         elif path == "/config.json":
             await answer(200, _config_json(server), "application/json")
         elif path.startswith("/trace/"):

@@ -379,9 +379,12 @@ def test_bind_and_address_checks():
     check_bind("127.0.0.1", "")
     check_bind("::1", "")
     check_bind("localhost", "")
-    check_bind("0.0.0.0", "secret")
+    check_bind("0.0.0.0", "secret", tls=True)
+    check_bind("0.0.0.0", "secret", allow_plaintext_token=True)
     with pytest.raises(ValueError, match="--token"):
         check_bind("0.0.0.0", "")
+    with pytest.raises(ValueError, match="in clear.*--tls-cert.*--allow-plaintext-token"):
+        check_bind("0.0.0.0", "secret")
     assert parse_hostport("127.0.0.1:9000") == ("127.0.0.1", 9000)
     assert parse_hostport("[::1]:9") == ("::1", 9)
     assert parse_hostport("link:9001") == ("link", 9001)
@@ -463,7 +466,8 @@ def test_compose_services_run_real_quadcast_commands():
     assert parsed["link"].delay == "20ms" and parsed["link"].jitter == "10ms"
     assert services["client"]["depends_on"] == ["link"] and services["link"]["depends_on"] == ["server"]
     # a public bind inside a container is only accepted with the token
-    check_bind(parsed["server"].host, parsed["server"].token)
+    check_bind(parsed["server"].host, parsed["server"].token, tls=parsed["server"].tls_cert is not None,
+               allow_plaintext_token=parsed["server"].allow_plaintext_token)
     if shutil.which("docker") and subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0:
         r = subprocess.run(["docker", "compose", "-f", str(ROOT / "docker-compose.yml"), "config", "-q"],
                            capture_output=True, text=True, timeout=60)

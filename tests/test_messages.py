@@ -38,11 +38,11 @@ hellos = st.builds(Hello, version=u16, method=text, width=st.integers(1, 2**32 -
 welcomes = st.builds(Welcome, session_id=st.integers(0, 2**64 - 1),
                      server_hz=st.floats(0.0, 1e6, exclude_min=True))
 quats = st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda q: sum(v * v for v in q) > 1e-6)
-poses = st.builds(PoseUpdate, seq=st.integers(0, 2**64 - 1), t_client=finite,
-                  position=st.lists(finite, min_size=3, max_size=3), quat=quats)
+poses = st.builds(PoseUpdate, seq=st.integers(0, 2**64 - 1), t_client=st.floats(-1e10, 1e10),
+                  position=st.lists(st.floats(-1e5, 1e5), min_size=3, max_size=3), quat=quats)
 frames = st.builds(Frame, payload=st.binary(max_size=300))
 refreqs = st.builds(ReferenceRequest, reason=text)
-errors = st.builds(ErrorMessage, code=u16, text=text)
+errors = st.builds(ErrorMessage, code=u16, text=text, retry_after_s=st.integers(0, 2**32 - 1).map(lambda ms: ms / 1e3))
 messages = st.one_of(hellos, welcomes, poses, frames, refreqs, errors, st.just(Bye()))
 
 
@@ -118,6 +118,32 @@ def test_pose_update_from_pose_and_readonly_arrays():
         m.position[0] = 5.0
 
 
+def test_busy_error_carries_retry_after_and_plain_errors_stay_as_before():
+    busy = ErrorMessage(ErrorCode.BUSY, "server busy", retry_after_s=2.5)
+    wire = encode_message(busy)
+    assert wire.endswith(struct.pack("<I", 2500))
+    assert MessageDecoder().feed(wire) == [busy]
+    plain = ErrorMessage(ErrorCode.PROTOCOL, "bad")          # no retry-after: the body of protocol version 1
+    assert encode_message(plain) == _raw(MessageType.ERROR, struct.pack("<H", 1) + b"\x03\x00bad")
+    assert MessageDecoder().feed(encode_message(plain))[0].retry_after_s == 0.0
+    with pytest.raises(ValueError, match="retry_after_s"):
+        ErrorMessage(ErrorCode.BUSY, "x", retry_after_s=-1.0)
+
+
+@pytest.mark.parametrize("position, quat, t, match", [
+    ([0, 0, 1e300], [0, 0, 0, 1], 0.0, "position"),
+    ([0, 0, 0], [1e200, 1e200, 0, 1], 0.0, "quat"),
+    ([0, 0, 0], [0, 0, 0, 1e-9], 0.0, "quat"),
+    ([0, 0, 0], [0, 0, 0, 1], 1e300, "frame payload t"),
+])
+def test_frame_payload_poses_are_bounded_like_pose_updates(position, quat, t, match):
+    from quadcast.protocol.frame import decode_frame_payload, encode_frame_payload
+    p = FramePayload(Method.ATW, 1, FrameType.REFERENCE, 0, t, np.array(position, float), np.array(quat, float),
+                     b"v", b"", True)
+    with pytest.raises(ProtocolError, match=match):
+        decode_frame_payload(encode_frame_payload(p))
+
+
 # -- construction errors -----------------------------------------------------
 
 
@@ -184,6 +210,12 @@ def test_unknown_type():
     (MessageType.WELCOME, struct.pack("<Qd", 1, 30.0) + b"x", "Welcome: 1 unexpected trailing"),
     (MessageType.WELCOME, struct.pack("<Qd", 1, float("inf")), "Welcome.server_hz: expected a finite"),
     (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, 0.0, 0, 0, 0, 0, 0, 0, 0), "PoseUpdate.quat: expected a non-zero"),
+    # finite but absurd (issue 13): each is refused at decoding, naming the field
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, 0.0, 0, 0, 0, 1e200, 1e200, 0, 1), "PoseUpdate.quat: .*norm"),
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, 0.0, 0, 0, 0, 1e-5, 0, 0, 0), "PoseUpdate.quat: expected a non-zero"),
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, 0.0, 1e300, 0, 0, 0, 0, 0, 1), "PoseUpdate.position: .*within"),
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, 1e300, 0, 0, 0, 0, 0, 0, 1), "PoseUpdate.t_client: .*within"),
+    (MessageType.ERROR, b"\x07\x00\x00\x00" + struct.pack("<I", 0), "retry_after_ms: 0"),
     (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, 0.0, float("nan"), 0, 0, 0, 0, 0, 1), "PoseUpdate.position"),
     (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, float("-inf"), 0, 0, 0, 0, 0, 0, 1), "PoseUpdate.t_client"),
     (MessageType.HELLO, struct.pack("<HIId", 1, 320, 180, 60.0) + b"\x02\x00\xff\xfe\x00\x00",

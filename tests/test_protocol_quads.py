@@ -8,7 +8,7 @@ import tracemalloc
 import numpy as np
 import pytest
 import zstandard
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
@@ -35,7 +35,8 @@ from quadcast.protocol.quads import (
     unpack_quad_words,
 )
 
-DETERMINISTIC = settings(derandomize=True, deadline=None, database=None, max_examples=60)
+DETERMINISTIC = settings(derandomize=True, deadline=None, database=None, max_examples=60,
+                         suppress_health_check=[HealthCheck.filter_too_much, HealthCheck.too_slow])
 
 
 # ---------------------------------------------------------------------------
@@ -148,7 +149,7 @@ def quad_layers(draw) -> QuadLayer:
         height=height,
         camera=draw(hnp.arrays(np.float32, 16, elements=st.floats(width=32, allow_nan=False, allow_infinity=False))),
         atlas_rect=tuple(draw(st.lists(st.integers(0, 0xFFFF), min_size=4, max_size=4))),
-        quads=draw(quad_sets(width, height)),
+        quads=draw(quad_sets(width, height, max_n=min(24, width * height))),
     )
 
 
@@ -487,7 +488,7 @@ def _decode_expecting_error(blob: bytes, pattern: str, **limits) -> None:
 def test_oversized_counts_rejected_before_decompression(gigabyte_bomb: bytes) -> None:
     # 1 GiB of zeros claimed by consistent header counts: refused from the counts alone.
     quads = (1 << 30) // 10
-    header = make_header(layer_count=1, payload_size=10 * quads) + make_layer(quads=quads)
+    header = make_header(layer_count=1, payload_size=10 * quads) + make_layer(width=0xFFFF, height=0xFFFF, quads=quads)
     blob = header + gigabyte_bomb
     peak = _peak_python_allocation(lambda: _decode_expecting_error(blob, r"max_quads 8388608"))
     assert peak < 4 << 20
@@ -499,6 +500,43 @@ def test_oversized_counts_rejected_before_decompression(gigabyte_bomb: bytes) ->
     many = make_header(layer_count=2, payload_size=0) + make_layer(quads=5) + make_layer(quads=6)
     _decode_expecting_error(many + gigabyte_bomb, r"layer\[1\]\.quad_count: total quads 11 exceeds max_quads 10",
                             max_quads=10)
+
+
+def test_declared_sizes_must_be_what_the_receiver_asked_for(gigabyte_bomb: bytes) -> None:
+    # Issue 13: a small blob declaring 8 Mi quads in a 1-pixel-high layer; refused from its headers alone.
+    quads = 1 << 23
+    tall = make_header(layer_count=1, payload_size=10 * quads) + make_layer(width=0xFFFF, height=1, quads=quads)
+    peak = _peak_python_allocation(lambda: _decode_expecting_error(tall + gigabyte_bomb, r"at most one per pixel"))
+    assert peak < 4 << 20
+    fits = make_header(layer_count=1, payload_size=10 * 100) + make_layer(width=320, height=180, quads=100)
+    _decode_expecting_error(fits + gigabyte_bomb, r"layer\[0\]: 320x180, expected the 64x36 asked for", size=(64, 36))
+    wide = make_header(layer_count=1, payload_size=10) + make_layer(kind=int(LayerKind.WIDE), width=66, height=36,
+                                                                    quads=1)
+    _decode_expecting_error(wide + gigabyte_bomb, r"wide layer of 66x36, larger than the 64x36", size=(64, 36))
+    # a frame of the right sizes decodes (the wide layer smaller), and into views of its columns, not copies
+    rng = np.random.default_rng(3)
+    frame = QuadFrame([QuadLayer(LayerKind.VISIBLE, 64, 36, np.zeros(16), (0, 0, 64, 36), random_quads(rng, 9, 64, 36)),
+                       QuadLayer(LayerKind.WIDE, 32, 18, np.zeros(16), (0, 36, 32, 18), QuadSet.empty())])
+    assert_frames_equal(frame, decode_quad_frame(encode_quad_frame(frame), size=(64, 36)))
+
+
+def test_decoding_needs_about_its_output_in_memory() -> None:
+    rng = np.random.default_rng(1)
+    w, h = 256, 128
+    n = w * h
+    flat = rng.random(n) < 0.5
+    normal = rng.normal(size=(n, 3))
+    quads = QuadSet(x=np.tile(np.arange(w), h), y=np.repeat(np.arange(h), w), size_log2=np.zeros(n, int),
+                    flattened=flat, alpha=np.zeros(n, bool), normal=normal / np.linalg.norm(normal, axis=1)[:, None],
+                    depth=rng.random(n) + 1, offsets=rng.random((int((~flat).sum()), 16)))
+    blob = encode_quad_frame(QuadFrame([QuadLayer(LayerKind.VISIBLE, w, h, np.zeros(16), (0, 0, w, h), quads)]))
+    decode_quad_frame(blob, size=(w, h))       # warm the normal table
+    out = {}
+    peak = _peak_python_allocation(lambda: out.setdefault("f", decode_quad_frame(blob, size=(w, h))))
+    q = out["f"].layers[0].quads
+    output = sum(getattr(q, c).nbytes for c in ("x", "y", "size_log2", "flattened", "alpha", "normal", "depth",
+                                                "offsets"))
+    assert peak < 2.5 * output, (peak, output)
 
 
 def test_zstd_bomb_behind_small_header_rejected(gigabyte_bomb: bytes) -> None:

@@ -274,6 +274,7 @@ class _FakeWorker:
 def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_delay_ms):
     import quadcast.server.app as app
     import quadcast.sim.replay as replay_mod
+    from quadcast.protocol.admission import Admission
     from quadcast.render.traces import resolve_trace
 
     # 1. The virtual-time replay, with a lossy downlink so the client asks for references.
@@ -301,7 +302,7 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
         config=types.SimpleNamespace(handshake_timeout=1e9, idle_timeout=1e9, max_sessions=1, methods=("quasar",),
                                      max_width=64, max_height=64, token="", server_hz=30.0,
                                      session_config=lambda: session_config),
-        active=0, workers=set(), session_ended=lambda c: None)
+        admission=Admission(), workers=set(), session_ended=lambda c: None)
     events = [e for e in replayed if e[0] in ("pose", "reference")]
     poses = {e[1]: e for e in events}
     trace = resolve_trace("builtin:walk")
@@ -322,7 +323,7 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
         for when, msgs in at.items():
             loop.call_at(when, lambda m=msgs: [channel.inbox.put_nowait(x) for x in m])
         loop.call_at(events[-1][1] + 1.0, channel.inbox.put_nowait, Bye())
-        await _Session(server, channel, 1).run()
+        await _Session(server, channel, 1, server.admission.open("test")).run()
         return channel
 
     loop = asyncio.new_event_loop()

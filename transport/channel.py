@@ -1,18 +1,29 @@
-"""The live protocol's message channel on an asyncio TCP stream (:class:`TcpChannel`), and the interface every
-transport's channel has (:class:`Channel`; :mod:`quadcast.transport.webrtc` has the same over WebRTC): length-prefixed
-messages in, typed messages out (:mod:`quadcast.protocol.messages`, sans-I/O), with byte counters.
+"""The live protocol's message channel on an asyncio TCP stream (:class:`TcpChannel`, optionally TLS: see
+:mod:`quadcast.transport.tls`), and the interface every transport's channel has (:class:`Channel`;
+:mod:`quadcast.transport.webrtc` has the same over WebRTC): length-prefixed messages in, typed messages out
+(:mod:`quadcast.protocol.messages`, sans-I/O), with byte counters.
 """
 from __future__ import annotations
 
 import asyncio
 import collections
+import ssl as _ssl
 
 from quadcast.protocol.frame import FramePayload
 from quadcast.protocol.messages import Frame, Message, MessageDecoder, encode_message
 
-__all__ = ["Channel", "TcpChannel", "open_tcp_channel"]
+__all__ = ["Channel", "TcpChannel", "open_tcp_channel", "ServerBusy"]
 
 _READ_CHUNK = 1 << 16
+
+
+class ServerBusy(ConnectionError):
+    """The server has no room now (ErrorCode.BUSY, or HTTP 503 from WebRTC signalling): try again after
+    ``retry_after_s`` seconds."""
+
+    def __init__(self, text: str, retry_after_s: float) -> None:
+        super().__init__(text)
+        self.retry_after_s = float(retry_after_s)
 
 
 class Channel:
@@ -88,7 +99,12 @@ class TcpChannel(Channel):
             pass
 
 
-async def open_tcp_channel(host: str, port: int, max_message_bytes: int, timeout: float = 5.0) -> TcpChannel:
-    """Connect to ``host:port``; raises OSError / asyncio.TimeoutError when nobody answers."""
-    reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
+async def open_tcp_channel(host: str, port: int, max_message_bytes: int, timeout: float = 5.0,
+                           ssl: _ssl.SSLContext | None = None) -> TcpChannel:
+    """Connect to ``host:port`` (with TLS when ``ssl`` is given: a client context, see
+    :func:`quadcast.transport.tls.client_context`; the server's name checked against ``host``); raises OSError /
+    asyncio.TimeoutError when nobody answers, :class:`ssl.SSLCertVerificationError` for a certificate that does
+    not verify. Connecting and the TLS handshake share ``timeout``."""
+    reader, writer = await asyncio.wait_for(
+        asyncio.open_connection(host, port, ssl=ssl, server_hostname=host if ssl is not None else None), timeout)
     return TcpChannel(reader, writer, max_message_bytes)

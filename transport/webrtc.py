@@ -24,7 +24,13 @@ within :data:`PAIR_TIMEOUT_S` is dropped (the client then asks for a reference a
 
 Signalling is one HTTP request: the client POSTs its offer (JSON ``{"sdp", "type"}``) to ``/offer`` on the
 server's port and gets the answer back; :class:`WebRtcListener` is that endpoint (a tiny HTTP/1.1 server with
-header and body caps, no dependency beyond aiortc).
+header and body caps, no dependency beyond aiortc). Its :class:`SignallingPolicy`: the request must carry the
+server's token as ``Authorization: Bearer <token>`` when it has one (401 without, 403 when wrong) -- checked
+before any peer connection exists; at most ``max_peer_connections`` peer connections live at once (503 with a
+``Retry-After`` beyond); with ``ssl`` the endpoint is HTTPS; each request is a connection of the server's
+:class:`quadcast.protocol.admission.Admission` (pre-auth and per-address caps). Peer connections on both sides use
+no ICE server unless one is given (``stun``): aiortc's default is a public STUN server, so without this a server
+would reach out to the internet for every offer.
 """
 from __future__ import annotations
 
@@ -32,17 +38,23 @@ import asyncio
 import collections
 import contextlib
 import fractions
+import hmac
 import json
 import logging
+import math
+import ssl as _ssl
 import time
+from dataclasses import dataclass
 from typing import Awaitable, Callable
 
+from quadcast.protocol.admission import Admission, Refusal
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import join_video, peek_frame_id, split_index, split_video
 from quadcast.protocol.messages import Frame, Message, MessageDecoder, PoseUpdate, encode_message
-from quadcast.transport.channel import Channel
+from quadcast.transport.channel import Channel, ServerBusy
 
-__all__ = ["WebRtcChannel", "WebRtcListener", "open_webrtc_channel", "CHUNK_BYTES", "REENCODE_CRF"]
+__all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
+           "CHUNK_BYTES", "REENCODE_CRF"]
 
 log = logging.getLogger("quadcast.webrtc")
 
@@ -75,6 +87,15 @@ def _pc_classes():
     except ImportError as exc:  # pragma: no cover - aiortc is a dependency
         raise RuntimeError(f"WebRTC transport needs aiortc: {exc}") from exc
     return MediaStreamTrack, RTCPeerConnection, RTCSessionDescription
+
+
+def ice_configuration(stun: str | None = None):
+    """The peer connections' configuration: no ICE server (host candidates only) unless a ``stun`` URL is given
+    (e.g. ``stun:stun.example.org:3478``). aiortc's own default would be a public STUN server."""
+    from aiortc import RTCConfiguration, RTCIceServer
+    if stun is not None and not stun.startswith(("stun:", "stuns:")):
+        raise ValueError(f"--stun {stun!r}: expected a stun: URL, e.g. stun:stun.example.org:3478")
+    return RTCConfiguration(iceServers=[RTCIceServer(urls=stun)] if stun else [])
 
 
 def _atlas_track_class():
@@ -308,9 +329,13 @@ async def _read_http(reader: asyncio.StreamReader) -> tuple[str, dict, bytes]:
     return lines[0], headers, body[:length]
 
 
-def _http_response(status: str, body: bytes, content_type: str = "application/json") -> bytes:
-    return (f"HTTP/1.1 {status}\r\nContent-Type: {content_type}\r\nContent-Length: {len(body)}\r\n"
+def _http_response(status: str, body: bytes, content_type: str = "application/json", extra: str = "") -> bytes:
+    return (f"HTTP/1.1 {status}\r\nContent-Type: {content_type}\r\nContent-Length: {len(body)}\r\n{extra}"
             f"Connection: close\r\n\r\n").encode() + body
+
+
+def _error_body(text: str) -> bytes:
+    return json.dumps({"error": text}).encode()
 
 
 def _parse_sdp(body: bytes, expected_type: str) -> dict:
@@ -323,16 +348,32 @@ def _parse_sdp(body: bytes, expected_type: str) -> dict:
     return desc
 
 
+@dataclass(frozen=True)
+class SignallingPolicy:
+    """Who may signal, and how much (see the module docstring). The defaults suit a loopback test server."""
+
+    token: str = ""                         # required as "Authorization: Bearer <token>" when set
+    ssl: _ssl.SSLContext | None = None       # HTTPS when given (a server context)
+    admission: Admission | None = None       # the server's connection caps (None: none)
+    max_peer_connections: int = 8            # peer connections alive at once (opening or open)
+    retry_after_s: float = 5.0               # the Retry-After of a 503
+    stun: str | None = None                  # ICE server (None: host candidates only)
+    request_timeout: float = 10.0            # TLS handshake + request, per connection
+
+
 class WebRtcListener:
     """The server side: an HTTP endpoint taking offers; each connection becomes a :class:`WebRtcChannel` handed to
     ``on_channel`` (a coroutine function, run as its own task)."""
 
     def __init__(self, host: str, port: int, on_channel: Callable[[WebRtcChannel], Awaitable[None]],
-                 max_message_bytes: int = 64 * 1024, open_timeout: float = 15.0) -> None:
+                 max_message_bytes: int = 64 * 1024, open_timeout: float = 15.0,
+                 policy: SignallingPolicy | None = None) -> None:
         self.host, self.requested_port = host, port
         self.on_channel = on_channel
         self.max_message_bytes = max_message_bytes
         self.open_timeout = open_timeout
+        self.policy = policy or SignallingPolicy()
+        ice_configuration(self.policy.stun)   # ValueError for a bad URL, now rather than per offer
         self._server: asyncio.AbstractServer | None = None
         self._tasks: set[asyncio.Task] = set()
         self._pcs: set = set()
@@ -354,32 +395,70 @@ class WebRtcListener:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(pc.close(), 3.0)
 
+    def _busy(self, text: str) -> bytes:
+        after = max(1, math.ceil(self.policy.retry_after_s))
+        return _http_response("503 Service Unavailable", _error_body(text), extra=f"Retry-After: {after}\r\n")
+
+    def _authorize(self, headers: dict) -> bytes | None:
+        """The 401/403 response for a request without the right token, or None."""
+        token = self.policy.token
+        if not token:
+            return None
+        scheme, _, given = headers.get("authorization", "").partition(" ")
+        if scheme.lower() != "bearer" or not given.strip():
+            return _http_response("401 Unauthorized", _error_body("POST /offer needs Authorization: Bearer <token>"),
+                                  extra='WWW-Authenticate: Bearer realm="quadcast"\r\n')
+        if not hmac.compare_digest(given.strip().encode(), token.encode()):
+            return _http_response("403 Forbidden", _error_body("wrong token"))
+        return None
+
     async def _on_http(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        policy = self.policy
         peer = writer.get_extra_info("peername")
+        peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
+        ticket = policy.admission.open(peer.rpartition(":")[0] or peer) if policy.admission is not None else None
+        if isinstance(ticket, Refusal):
+            if policy.ssl is None:
+                writer.write(self._busy(ticket.text))
+            writer.close()
+            return
         try:
+            if policy.ssl is not None:
+                try:
+                    await writer.start_tls(policy.ssl, ssl_handshake_timeout=policy.request_timeout)  # not in wait_for (3.11)
+                except (asyncio.TimeoutError, _ssl.SSLError, ConnectionError, OSError) as exc:
+                    log.info("webrtc signalling from %s: TLS handshake failed: %s", peer, exc or "timed out")
+                    return
             try:
-                start, _, body = await asyncio.wait_for(_read_http(reader), 10.0)
+                start, headers, body = await asyncio.wait_for(_read_http(reader), policy.request_timeout)
                 method, path, *_ = start.split(" ") + ["", ""]
                 if method != "POST" or path != "/offer":
-                    writer.write(_http_response("404 Not Found", b'{"error": "POST /offer only"}'))
-                    return
-                offer = _parse_sdp(body, "offer")
-                answer = await self._accept(offer, f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer))
-                writer.write(_http_response("200 OK", json.dumps(answer).encode()))
+                    writer.write(_http_response("404 Not Found", _error_body("POST /offer only")))
+                elif (denied := self._authorize(headers)) is not None:
+                    log.info("webrtc signalling from %s: %s", peer, denied.split(b"\r\n", 1)[0].decode())
+                    writer.write(denied)
+                elif len(self._pcs) >= policy.max_peer_connections:
+                    writer.write(self._busy(f"{policy.max_peer_connections} peer connections already"))
+                else:
+                    offer = _parse_sdp(body, "offer")
+                    answer = await self._accept(offer, peer)
+                    writer.write(_http_response("200 OK", json.dumps(answer).encode()))
             except (ValueError, asyncio.TimeoutError) as exc:
-                writer.write(_http_response("400 Bad Request", json.dumps({"error": str(exc)}).encode()))
+                writer.write(_http_response("400 Bad Request", _error_body(str(exc))))
             except Exception as exc:  # noqa: BLE001 -- a bad offer must not take the server down
                 log.warning("webrtc signalling from %s failed: %s", peer, exc)
-                writer.write(_http_response("500 Internal Server Error", json.dumps({"error": str(exc)}).encode()))
+                writer.write(_http_response("500 Internal Server Error", _error_body(str(exc))))
             await writer.drain()
         except (ConnectionError, OSError):
             pass
         finally:
             writer.close()
+            if ticket is not None:
+                ticket.close()
 
     async def _accept(self, offer: dict, peer: str) -> dict:
         _, RTCPeerConnection, RTCSessionDescription = _pc_classes()
-        pc = RTCPeerConnection()
+        pc = RTCPeerConnection(ice_configuration(self.policy.stun))
         self._pcs.add(pc)
         channels: dict = {}
         opened = asyncio.Event()
@@ -406,6 +485,7 @@ class WebRtcListener:
                 await asyncio.wait_for(opened.wait(), self.open_timeout)
             except asyncio.TimeoutError:
                 log.warning("webrtc %s: data channels did not open within %g s", peer, self.open_timeout)
+                self._pcs.discard(pc)
                 await pc.close()
                 return
             channel = WebRtcChannel(pc, channels, self.max_message_bytes, video_out=track, peer=peer)
@@ -421,26 +501,42 @@ class WebRtcListener:
         return {"sdp": pc.localDescription.sdp, "type": pc.localDescription.type}
 
 
-async def _post_offer(host: str, port: int, offer: dict, timeout: float) -> dict:
-    reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
+async def _post_offer(host: str, port: int, offer: dict, timeout: float, token: str = "",
+                      ssl: _ssl.SSLContext | None = None) -> dict:
+    reader, writer = await asyncio.wait_for(
+        asyncio.open_connection(host, port, ssl=ssl, server_hostname=host if ssl is not None else None), timeout)
     try:
         body = json.dumps(offer).encode()
-        writer.write((f"POST /offer HTTP/1.1\r\nHost: {host}:{port}\r\nContent-Type: application/json\r\n"
+        auth = f"Authorization: Bearer {token}\r\n" if token else ""
+        writer.write((f"POST /offer HTTP/1.1\r\nHost: {host}:{port}\r\nContent-Type: application/json\r\n{auth}"
                       f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n").encode() + body)
         await writer.drain()
-        start, _, answer = await asyncio.wait_for(_read_http(reader), timeout)
-        if " 200 " not in f"{start} ":
-            raise ConnectionError(f"signalling at {host}:{port} answered {start!r}: {answer[:200]!r}")
+        start, headers, answer = await asyncio.wait_for(_read_http(reader), timeout)
+        status = (start.split(" ") + ["", ""])[1]
+        said = f"signalling at {host}:{port} answered {start!r}: {answer[:200].decode('utf-8', 'replace')}"
+        if status == "503":
+            try:
+                after = float(headers.get("retry-after", "5"))
+            except ValueError:
+                after = 5.0
+            raise ServerBusy(said, after if math.isfinite(after) and after >= 0 else 5.0)
+        if status in ("401", "403"):
+            raise PermissionError(said)
+        if status != "200":
+            raise ConnectionError(said)
         return _parse_sdp(answer, "answer")
     finally:
         writer.close()
 
 
-async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, timeout: float = 15.0) -> WebRtcChannel:
-    """The client side: offer (receive-only video + the three data channels), signal over HTTP, wait until the
-    data channels are open."""
+async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, timeout: float = 15.0,
+                              token: str = "", ssl: _ssl.SSLContext | None = None,
+                              stun: str | None = None) -> WebRtcChannel:
+    """The client side: offer (receive-only video + the three data channels), signal over HTTP (HTTPS with a
+    client ``ssl`` context; ``token`` as a bearer token), wait until the data channels are open. Raises
+    :class:`ServerBusy` when the server has no room, PermissionError when it refuses the token."""
     _, RTCPeerConnection, RTCSessionDescription = _pc_classes()
-    pc = RTCPeerConnection()
+    pc = RTCPeerConnection(ice_configuration(stun))
     try:
         channels = {"control": pc.createDataChannel("control"),
                     "poses": pc.createDataChannel("poses", ordered=False, maxRetransmits=0),
@@ -460,7 +556,7 @@ async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, time
 
         await pc.setLocalDescription(await pc.createOffer())
         answer = await _post_offer(host, port, {"sdp": pc.localDescription.sdp, "type": pc.localDescription.type},
-                                   timeout)
+                                   timeout, token, ssl)
         await pc.setRemoteDescription(RTCSessionDescription(sdp=answer["sdp"], type="answer"))
         deadline = time.monotonic() + timeout
         while any(dc.readyState != "open" for dc in channels.values()):

@@ -71,7 +71,11 @@ def cmd_server(args) -> int:
                        reference_every=args.reference_every, crf=args.crf, lead_ms=args.lead_ms,
                        predict=not args.no_predict, max_sessions=args.max_sessions,
                        max_message_bytes=args.max_message_bytes, worker=args.worker,
-                       spare_workers=args.spare_workers)
+                       spare_workers=args.spare_workers, max_preauth=args.max_preauth, max_per_ip=args.max_per_ip,
+                       handshake_timeout=args.handshake_timeout, idle_timeout=args.idle_timeout,
+                       retry_after=args.retry_after, tls_cert=args.tls_cert, tls_key=args.tls_key,
+                       allow_plaintext_token=args.allow_plaintext_token,
+                       max_peer_connections=args.max_peer_connections, stun=args.stun)
 
     async def main() -> None:
         server = LiveServer(cfg, make_server, transport=args.transport)
@@ -123,7 +127,8 @@ def cmd_client(args) -> int:
     cfg = ClientConfig(host=host, port=port, trace=args.trace, out=args.out, scene=args.scene, method=args.method,
                        width=w, height=h, fovy_deg=args.fovy, duration=args.duration, start=args.start,
                        record_every=args.record_every, token=args.token or "", transport=args.transport,
-                       retries=args.retries, score=not args.no_score, stereo=args.stereo, labels=labels)
+                       retries=args.retries, score=not args.no_score, stereo=args.stereo, labels=labels,
+                       tls=args.tls, tls_ca=args.tls_ca, insecure=args.insecure, stun=args.stun)
     client = LiveClient(cfg, make_client)
     result: dict = {}
 
@@ -162,7 +167,7 @@ def cmd_link(args) -> int:
     from quadcast.sim.proxy import LinkProxy
     _setup_logging(args.verbose)
     to_host, to_port = parse_hostport(args.to)
-    check_bind(args.host, "x" if args.public else "")
+    check_bind(args.host, "x" if args.public else "", allow_plaintext_token=True)   # the link holds no token
     up, down = link_models(args.delay, args.jitter, args.rate, args.loss, args.seed)
     proxy = LinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down)
 
@@ -186,16 +191,24 @@ def cmd_link(args) -> int:
 
 def add_live_commands(sub) -> None:
     """Add ``server``, ``client`` and ``link`` to ``quadcast``'s subparsers."""
+    from quadcast.protocol.admission import ServerLimits
     from quadcast.protocol.methods import METHODS
+    lim = ServerLimits()
 
     p = sub.add_parser("server", help="live server: stream a method to clients over TCP or WebRTC")
     p.add_argument("--scene", default="builtin:courtyard")
     p.add_argument("--method", default="quasar", help=f"method(s) served, comma-separated: {', '.join(METHODS)}")
-    p.add_argument("--host", default="127.0.0.1", help="bind address (non-loopback needs --token)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="bind address (non-loopback needs --token, and TLS or --allow-plaintext-token)")
     p.add_argument("--port", type=int, required=True, help="TCP port (0: pick a free one and print it)")
     p.add_argument("--transport", default="tcp", choices=["tcp", "webrtc"],
                    help="webrtc: signalling over HTTP on --port, media and data over WebRTC")
-    p.add_argument("--token", help="shared secret clients must send in Hello")
+    p.add_argument("--token", help="shared secret clients must send in Hello (WebRTC: also as the bearer token of "
+                                   "POST /offer)")
+    p.add_argument("--tls-cert", help="PEM certificate chain: serve TLS (TCP; WebRTC: HTTPS signalling)")
+    p.add_argument("--tls-key", help="PEM private key of --tls-cert (default: in the --tls-cert file)")
+    p.add_argument("--allow-plaintext-token", action="store_true",
+                   help="accept a --token on a non-loopback --host without TLS (the token crosses in clear)")
     p.add_argument("--size", dest="max_size", default="1920x1080", help="largest client size served, WxH")
     p.add_argument("--hz", type=float, default=30.0, help="frame rate cap per session")
     p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
@@ -204,8 +217,26 @@ def add_live_commands(sub) -> None:
     p.add_argument("--lead-ms", type=float, default=40.0,
                    help="render for the pose predicted this far beyond the measured encode time")
     p.add_argument("--no-predict", action="store_true", help="render the last received pose as is")
-    p.add_argument("--max-sessions", type=int, default=4)
-    p.add_argument("--max-message-bytes", type=int, default=64 * 1024, help="cap on a client message")
+    g = p.add_argument_group("limits")
+    g.add_argument("--max-sessions", type=int, default=lim.max_sessions,
+                   help="sessions at once; beyond, a client is told 'busy, retry after N s' (default %(default)s)")
+    g.add_argument("--max-preauth", type=int, default=lim.max_preauth,
+                   help="connections awaiting their handshake (TLS + Hello); others are closed at once "
+                        "(default %(default)s)")
+    g.add_argument("--max-per-ip", type=int, default=lim.max_per_ip,
+                   help="connections from one address, any state (default %(default)s)")
+    g.add_argument("--handshake-timeout", type=float, default=lim.handshake_timeout_s,
+                   help="seconds from accept to an accepted Hello, TLS handshake included (default %(default)s)")
+    g.add_argument("--idle-timeout", type=float, default=lim.idle_timeout_s,
+                   help="end a session whose client sends no pose for this many seconds; other messages do not "
+                        "count (default %(default)s)")
+    g.add_argument("--retry-after", type=float, default=lim.retry_after_s,
+                   help="seconds a busy server tells clients to wait (default %(default)s)")
+    g.add_argument("--max-message-bytes", type=int, default=64 * 1024,
+                   help="cap on a client message (default %(default)s)")
+    g.add_argument("--max-peer-connections", type=int, default=8,
+                   help="WebRTC peer connections at once, opening or open (default %(default)s)")
+    p.add_argument("--stun", help="WebRTC: a STUN server URL (default: none; host candidates only)")
     p.add_argument("--worker", default="process", choices=["process", "thread"],
                    help="where each session renders and encodes: its own process (default), or a thread of the "
                         "server's process (stalls the event loop while it renders)")
@@ -226,7 +257,14 @@ def add_live_commands(sub) -> None:
     p.add_argument("--record-every", type=int, default=1, help="record (and score) every K-th displayed frame")
     p.add_argument("--transport", default="tcp", choices=["tcp", "webrtc"])
     p.add_argument("--token", help="shared secret for the server")
-    p.add_argument("--retries", type=int, default=5, help="connection attempts after a failure or a drop")
+    p.add_argument("--tls", action="store_true", help="connect with TLS, verifying the server against the system CAs")
+    p.add_argument("--tls-ca", help="connect with TLS, trusting this PEM CA / self-signed certificate")
+    p.add_argument("--insecure", action="store_true",
+                   help="connect with TLS without verifying the server (encryption only)")
+    p.add_argument("--stun", help="WebRTC: a STUN server URL (default: none)")
+    p.add_argument("--retries", type=int, default=5,
+                   help="connection attempts after a failure, a drop or a busy server, with exponential backoff "
+                        "(0.5 s doubling to 2 s; at least the server's retry-after)")
     p.add_argument("--no-score", action="store_true", help="record only; skip the ground-truth scoring")
     p.add_argument("--stereo", action="store_true",
                    help="also show and record both eyes (the right one synthesized with YORO from the quad mesh) and "
