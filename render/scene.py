@@ -171,19 +171,23 @@ LARGE_SCENE_M = 20.0
 object looked at from outside."""
 
 
-def default_spawn(bounds: np.ndarray, fovy_deg: float = 60.0) -> Spawn:
+def default_spawn(bounds: np.ndarray, floor_at=None, fovy_deg: float = 60.0) -> Spawn:
     """The spawn point of a scene that declares none, from its (2, 3) bounds: in a large scene
-    (:data:`LARGE_SCENE_M`) its middle at eye height above its floor, facing -Z; in front of a smaller one (its +Z
-    side), far enough back for the whole box to fit a ``fovy_deg`` view, at eye height or the box's mid-height,
-    whichever is higher, facing it (-Z)."""
+    (:data:`LARGE_SCENE_M`) its middle at eye height above the floor, facing -Z; in front of a smaller one (its +Z
+    side), far enough back for the whole box to fit a ``fovy_deg`` view, at eye height above the floor or the box's
+    mid-height, whichever is higher, facing it (-Z). ``floor_at(x, z)`` gives the floor's height there (e.g.
+    :meth:`Scene.floor_height`; None or a None result: the bounds' bottom)."""
     lo, hi = np.asarray(bounds, dtype=np.float64)
     mid = (lo + hi) / 2
-    eye = lo[1] + SPAWN_EYE_HEIGHT
+
+    def eye(x: float, z: float) -> float:
+        floor = floor_at(x, z) if floor_at is not None else None
+        return (lo[1] if floor is None else floor) + SPAWN_EYE_HEIGHT
     if np.hypot(hi[0] - lo[0], hi[2] - lo[2]) >= LARGE_SCENE_M:
-        return Spawn((float(mid[0]), float(eye), float(mid[2])), 0.0)
+        return Spawn((float(mid[0]), float(eye(mid[0], mid[2])), float(mid[2])), 0.0)
     radius = float(np.linalg.norm(hi - lo) / 2)
-    back = radius / math.sin(math.radians(fovy_deg) / 2)
-    return Spawn((float(mid[0]), float(max(eye, mid[1])), float(mid[2] + back)), 0.0)
+    z = mid[2] + radius / math.sin(math.radians(fovy_deg) / 2)
+    return Spawn((float(mid[0]), float(max(eye(mid[0], z), mid[1])), float(z)), 0.0)
 
 
 @dataclass
@@ -207,7 +211,7 @@ class Scene:
         for i, obj in enumerate(self.objects):
             obj.object_id = i + 1  # 0 means "nothing" in the G-buffer
         if self.spawn is None:
-            self.spawn = default_spawn(self.bounds())
+            self.spawn = default_spawn(self.bounds(), self.floor_height)
 
     @property
     def triangle_count(self) -> int:
@@ -216,6 +220,28 @@ class Scene:
     @property
     def is_dynamic(self) -> bool:
         return any(o.animation is not None for o in self.objects)
+
+    def floor_height(self, x: float, z: float) -> float | None:
+        """The height of the lowest surface straight below or above (x, z) at t = 0 (the ground under a roof),
+        or None when no triangle covers that point."""
+        lowest = None
+        point = np.array([x, z], dtype=np.float64)
+        for o in self.objects:
+            p = o.mesh.positions.astype(np.float64) @ o.transform[:3, :3].T + o.transform[:3, 3]
+            tri = p[o.mesh.indices]                                   # (M, 3, 3)
+            a, e1, e2 = tri[:, 0, [0, 2]], tri[:, 1, [0, 2]] - tri[:, 0, [0, 2]], tri[:, 2, [0, 2]] - tri[:, 0, [0, 2]]
+            det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+            ok = np.abs(det) > 1e-12
+            d = point - a
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / det
+                v = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / det
+                inside = ok & (u >= 0) & (v >= 0) & (u + v <= 1)
+            if inside.any():
+                y = tri[inside, 0, 1] + u[inside] * (tri[inside, 1, 1] - tri[inside, 0, 1]) + v[inside] * (
+                    tri[inside, 2, 1] - tri[inside, 0, 1])
+                lowest = float(y.min()) if lowest is None else min(lowest, float(y.min()))
+        return lowest
 
     def bounds(self) -> np.ndarray:
         """(2, 3) world-space bounding box at t = 0."""
@@ -515,13 +541,14 @@ def monastery_scene() -> Scene:
         raise SceneError(f"scene 'monastery': {path} is missing from pybullet_data")
     meshes = load_meshes(path)
     # The OBJ is already Y-up (floor at y = 0, roofs up to 30 m).
+    x, z = MONASTERY_SPAWN_XZ
+    floor = min(float(m.positions[:, 1].min()) for m in meshes)
     scene = Scene("monastery", [SceneObject(m, np.eye(4)) for m in meshes],
                   DirectionalLight(_unit([-0.5, -1.0, -0.35]), intensity=3.0),
-                  [PointLight(np.array([x, 2.5, z]), np.array([1.0, 0.75, 0.45]), 4.0, 7.0)
-                   for x, z in ((-4, -4), (4, -4), (-4, 4), (4, 4))])
+                  [PointLight(np.array([lx, 2.5, lz]), np.array([1.0, 0.75, 0.45]), 4.0, 7.0)
+                   for lx, lz in ((-4, -4), (4, -4), (-4, 4), (4, 4))],
+                  spawn=Spawn((x, floor + MONASTERY_EYE_HEIGHT, z), -90.0))
     lo, hi = scene.bounds()
     scene.sun.shadow_center = (lo + hi) / 2
     scene.sun.shadow_extent = float(np.linalg.norm(hi - lo) / 2)
-    x, z = MONASTERY_SPAWN_XZ
-    scene.spawn = Spawn((x, float(lo[1]) + MONASTERY_EYE_HEIGHT, z), -90.0)
     return scene

@@ -120,6 +120,13 @@ def test_spawn_points_and_traces_placed_there(tmp_path, courtyard):
     assert box.position[2] - 0.0 >= radius / np.sin(np.radians(30)) - 1e-9     # the whole box fits 60°
     hall = default_spawn(np.array([[-30.0, -1.0, -20.0], [30.0, 10.0, 20.0]]))
     assert hall.position == pytest.approx((0.0, 0.6, 0.0))
+    # An open space whose pillars reach below the ground: eye height above the ground, not above the bounds.
+    (tmp_path / "open.json").write_text(json.dumps({"models": [
+        {"primitive": "plane", "size": [60, 60]}, {"primitive": "box", "extents": [1, 6, 1], "position": [10, 1, 0]},
+        {"primitive": "box", "extents": [4, 0.5, 4], "position": [0, 8, 0]}]}))       # and a roof above the middle
+    scene = load_scene(tmp_path / "open.json")
+    assert scene.bounds()[0][1] == pytest.approx(-2.0) and scene.floor_height(0.0, 0.0) == pytest.approx(0.0)
+    assert scene.spawn.position == pytest.approx((0.0, 1.6, 0.0)) and scene.floor_height(100.0, 0.0) is None
 
 
 def test_monastery_spawn_is_its_main_courtyard():
