@@ -161,15 +161,7 @@ def parse_anchor(text: str) -> Anchor | str:
     if len(fields) not in (3, 4):
         raise TraceError(f"anchor {text!r}: expected 'spawn' or 'x,y,z[,yaw_deg]' (3 or 4 numbers), "
                          f"got {len(fields)} fields")
-    values = []
-    for label, field_text in zip(("x", "y", "z", "yaw_deg"), fields):
-        try:
-            value = float(field_text)
-        except ValueError:
-            raise TraceError(f"anchor {text!r}: {label} is not a number: {field_text!r}") from None
-        if not np.isfinite(value):
-            raise TraceError(f"anchor {text!r}: {label} is not finite: {field_text!r}")
-        values.append(value)
+    values = [_finite(token, f"anchor {text!r}: {label}") for label, token in zip(("x", "y", "z", "yaw_deg"), fields)]
     return Anchor(tuple(values[:3]), values[3] if len(values) == 4 else None)
 
 
@@ -426,6 +418,17 @@ class Trace:
 
 
 # ---------------------------------------------------------------------- parsing
+def _finite(token: str, what: str) -> float:
+    """``token`` as a finite float; otherwise a :class:`TraceError` saying ``what`` is not a (finite) number."""
+    try:
+        value = float(token)
+    except ValueError:
+        raise TraceError(f"{what} is not a number: {token!r}") from None
+    if not np.isfinite(value):
+        raise TraceError(f"{what} is not finite: {token!r}")
+    return value
+
+
 def parse_trace(text: str, name: str = "<text>") -> Trace:
     """Parse QUASAR trace text (``x y z pitch yaw roll t_ms`` per line) into a :class:`Trace`.
 
@@ -444,15 +447,8 @@ def parse_trace(text: str, name: str = "<text>") -> Trace:
                 f"{name}:{line_number}: expected {FIELDS_PER_LINE} fields "
                 f"(x y z pitch yaw roll t_ms), got {len(fields)}: {stripped!r}"
             )
-        values: list[float] = []
-        for column, token in zip(("x", "y", "z", "pitch", "yaw", "roll", "t_ms"), fields):
-            try:
-                value = float(token)
-            except ValueError:
-                raise TraceError(f"{name}:{line_number}: {column} is not a number: {token!r}") from None
-            if not np.isfinite(value):
-                raise TraceError(f"{name}:{line_number}: {column} is not finite: {token!r}")
-            values.append(value)
+        values = [_finite(token, f"{name}:{line_number}: {column}")
+                  for column, token in zip(("x", "y", "z", "pitch", "yaw", "roll", "t_ms"), fields)]
         if rows and values[6] <= rows[-1][6]:
             raise TraceError(
                 f"{name}:{line_number}: time {values[6]:g} ms is not after the previous "

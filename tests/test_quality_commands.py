@@ -71,3 +71,13 @@ def test_bench_quality_without_traces_skips_with_a_message(tmp_path, monkeypatch
     assert quadcast.main(["bench", "quality", str(tmp_path / "nope.txt")]) == 2
     assert quadcast.main(["bench", "quality", "--methods", "teleport"]) == 2
     assert quadcast.main(["bench", "server", str(tmp_path / "x.txt")]) == 2
+
+
+def test_live_client_follows_the_trace_from_the_spawn_point(head_trace, courtyard):
+    from quadcast.client.app import ClientConfig, LiveClient
+    from quadcast.methods import make_client
+    client = LiveClient(ClientConfig("127.0.0.1", 1, trace=str(head_trace), anchor="spawn", start=0.5), make_client)
+    assert client.pose_at(0.5).position == pytest.approx(courtyard.spawn.position, abs=1e-9)
+    assert client.duration == pytest.approx(2.5)
+    with pytest.raises(ValueError, match="anchor"):
+        LiveClient(ClientConfig("127.0.0.1", 1, trace=str(head_trace), anchor="1,2"), make_client)
