@@ -4,7 +4,9 @@ Every method client also says how its last render covered the display (:meth:`Me
 whether it shows content reprojected from a received frame (:attr:`PixelCoverage.DRAWN`), only a fallback fill
 that repeats the frame's edge pixels (:attr:`PixelCoverage.SMEARED`: ATW's clamp-to-edge outside the frame), or
 nothing at all (:attr:`PixelCoverage.EMPTY`: the clear colour shows). Pixels that are not DRAWN are *holes*: what
-the evaluation counts (``holes`` in frames.csv and summary.json).
+the evaluation counts (``holes`` in frames.csv and summary.json). Holes that do not reach the display's border
+(``holes_interior``: cracks and disocclusions inside the view) are told apart from those that do (mostly what
+lies beyond the frame the server rendered, and sky).
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from quadcast.protocol.frame import FramePayload
 from quadcast.render.camera import Pose
@@ -81,13 +84,25 @@ class Coverage:
         return int(np.count_nonzero(self.pixels == PixelCoverage.SMEARED)) / self.size
 
     @property
+    def interior_fraction(self) -> float:
+        """Fraction of the display in holes that do not touch its border (8-connected regions of hole pixels)."""
+        mask = self.hole_mask
+        labels, count = ndimage.label(mask, structure=np.ones((3, 3), bool))
+        if count == 0:
+            return 0.0
+        border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+        return int(np.count_nonzero(mask & ~np.isin(labels, border))) / self.size
+
+    @property
     def hole_mask(self) -> np.ndarray:
         """(H, W) bool, True where the display shows no content of its own."""
         return self.pixels != PixelCoverage.DRAWN
 
     def figures(self) -> dict[str, float]:
-        """The per-frame figures of the evaluation: ``holes``, ``holes_empty``, ``holes_smeared`` (fractions)."""
-        return {"holes": self.holes, "holes_empty": self.empty_fraction, "holes_smeared": self.smeared_fraction}
+        """The per-frame figures of the evaluation: ``holes``, ``holes_empty``, ``holes_smeared`` and
+        ``holes_interior`` (fractions of the display)."""
+        return {"holes": self.holes, "holes_empty": self.empty_fraction, "holes_smeared": self.smeared_fraction,
+                "holes_interior": self.interior_fraction}
 
 
 class MethodClient(ABC):

@@ -6,8 +6,9 @@ identical for the same seed), frames.csv (one row per scored frame), report.html
 
 Besides FLIP/SSIM/PSNR every scored frame has its *holes* (`quadcast.client.method.Coverage`): the fraction of the
 display where the client showed no content of its own -- nothing drawn, or only smeared edge pixels (``holes`` =
-``holes_empty`` + ``holes_smeared``); the summary has their mean/max and ``black_frames``, the display frames shown
-before the first payload plus the shown frames with no pixel drawn.
+``holes_empty`` + ``holes_smeared``; ``holes_interior`` is the part not touching the display's border: cracks and
+disocclusions rather than what lies beyond the rendered frame); the summary has their mean/max and
+``black_frames``, the display frames shown before the first payload plus the shown frames with no pixel drawn.
 """
 from __future__ import annotations
 
@@ -201,6 +202,7 @@ def build_summary(method: str, scene: str, trace: str, size: tuple[int, int], sc
         "holes": _stats(r.get("holes") for r in scored),
         "holes_empty": _stats(r.get("holes_empty") for r in scored)["mean"],
         "holes_smeared": _stats(r.get("holes_smeared") for r in scored)["mean"],
+        "holes_interior": _stats(r.get("holes_interior") for r in scored)["mean"],
         "black_frames": (run.get("frames_before_payload") or 0) + scorer.uncovered_frames,
         "client_ms": _mean_stages(client_ms),
     }
@@ -326,7 +328,8 @@ def evaluate_recording(directory: str | Path) -> dict:
         image = load(f["image"])
         pose = Pose(f["position"], f["quat"])
         extra = {k: f[k] for k in ("frame_id", "age_ms", "pose_error_cm", "pose_error_deg", "bytes_video",
-                                   "bytes_geometry", "holes", "holes_empty", "holes_smeared") if k in f}
+                                   "bytes_geometry", "holes", "holes_empty", "holes_smeared", "holes_interior")
+                 if k in f}
         scorer.count_coverage(extra["frame_id"] if "frame_id" in extra else 0, extra.get("holes"))
         scorer.score(f["index"], f["t"], pose, image, extra)
         client_ms.append(f.get("client_ms", {}))

@@ -15,7 +15,8 @@ them when present (see :data:`CORE_COLUMNS`):
 ``psnr``               dB
 ``holes``              fraction of the display the client left without content
                        (nothing drawn or only smeared edge pixels), 0..1;
-                       ``holes_empty`` / ``holes_smeared`` split it
+                       ``holes_empty`` / ``holes_smeared`` split it;
+                       ``holes_interior``: the part not touching the border
 ``pose_error_cm``      distance between rendered and displayed pose, cm
 ``pose_error_deg``     angle between rendered and displayed pose, degrees
 ``latency_ms``         motion-to-photon (pose sent -> frame displayed), ms
@@ -354,10 +355,11 @@ def _report_plots(flat: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
         fig = _figure(8.0, 2.4)
         ax = fig.add_subplot()
         ax.plot(x, 100 * _numeric(flat, "holes"), color="tab:red", lw=1.2, marker=".", ms=3, label="holes")
-        if _has(flat, "holes_smeared"):
-            ax.plot(x, 100 * _numeric(flat, "holes_smeared"), color="tab:orange", lw=1.0,
-                    label="of which smeared edge pixels")
-            ax.legend(loc="upper right", fontsize=8)
+        for key, color, label in (("holes_smeared", "tab:orange", "of which smeared edge pixels"),
+                                  ("holes_interior", "tab:purple", "of which inside the view (cracks)")):
+            if _has(flat, key):
+                ax.plot(x, 100 * _numeric(flat, key), color=color, lw=1.0, label=label)
+        ax.legend(loc="upper right", fontsize=8)
         ax.set_xlabel(xlabel)
         ax.set_ylabel("% of pixels")
         ax.set_title("Holes: pixels shown without content")

@@ -35,7 +35,14 @@ def test_coverage_figures_and_validation():
     c = Coverage.from_masks(drawn, smeared)
     assert c.hole_pixels == 20 - 6 and c.holes == pytest.approx(14 / 20)
     assert c.empty_fraction == pytest.approx(9 / 20) and c.smeared_fraction == pytest.approx(5 / 20)
-    assert c.figures() == {"holes": c.holes, "holes_empty": c.empty_fraction, "holes_smeared": c.smeared_fraction}
+    assert c.figures() == {"holes": c.holes, "holes_empty": c.empty_fraction, "holes_smeared": c.smeared_fraction,
+                           "holes_interior": 0.0}
+    # A crack inside the view (not touching the border) vs the border region.
+    inner = np.ones((6, 7), bool)
+    inner[2:4, 3] = False           # a 2-pixel crack
+    inner[:, 0] = False             # a border strip
+    assert Coverage.from_masks(inner).interior_fraction == pytest.approx(2 / 42)
+    assert Coverage.from_masks(np.ones((3, 3), bool)).interior_fraction == 0.0
     assert (c.hole_mask == ~drawn).all()
     assert Coverage.empty(5, 4).holes == 1.0
     for bad in (np.zeros((4, 5), np.float32), np.zeros(5, np.uint8), np.full((2, 2), 3, np.uint8)):
@@ -64,7 +71,7 @@ def test_quasar_holes_count_the_pixels_no_quad_covers_exactly(ctx):
     assert c.hole_pixels == W * H - 16 * 16
     expected = np.ones((H, W), bool)
     expected[8:24, 16:32] = False
-    assert (c.hole_mask == expected).all() and c.empty_fraction == c.holes
+    assert (c.hole_mask == expected).all() and c.empty_fraction == c.holes and c.interior_fraction == 0
     assert (image[~expected] > 150).all() and (image[expected] == 0).all()
 
 

@@ -80,6 +80,7 @@ def test_holes_and_black_frames_and_worst_strips_of_scored_frames_only(tmp_path)
     assert s["frames"] == spec.frames - s["frames_before_payload"]
     assert set(s["holes"]) == {"mean", "std", "max"} and 0.0 <= s["holes"]["mean"] <= s["holes"]["max"] <= 1.0
     assert s["holes_empty"] + s["holes_smeared"] == pytest.approx(s["holes"]["mean"])
+    assert 0 <= s["holes_interior"] <= s["holes"]["mean"]
     rows = list(csv.DictReader((tmp_path / "frames.csv").open()))
     assert all(int(r["frame_id"]) >= 0 and 0.0 <= float(r["holes"]) <= 1.0 for r in rows)
     html = (tmp_path / "report.html").read_text()
