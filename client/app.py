@@ -51,7 +51,8 @@ from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorM
 from quadcast.protocol.methods import METHODS, STEREO_METHODS, MethodConfig
 from quadcast.protocol.session import ClientSession, RequestReference
 from quadcast.render.camera import Pose
-from quadcast.render.traces import resolve_trace
+from quadcast.render.scene import load_scene, place_trace
+from quadcast.render.traces import SPAWN, resolve_trace
 from quadcast.render.worker import GLWorker
 from quadcast.transport.channel import Channel, ServerBusy, open_tcp_channel
 from quadcast.transport.tls import client_context
@@ -86,6 +87,7 @@ class ClientConfig:
     fovy_deg: float = 60.0
     duration: float | None = None         # seconds; default: the rest of the trace after `start`
     start: float = 0.0                    # trace time to start at
+    anchor: str | None = None             # re-anchor the trace into the scene ("spawn" or "x,y,z[,yaw_deg]")
     display_hz: float = 60.0
     pose_hz: float = 30.0
     record_every: int = 1
@@ -148,6 +150,7 @@ class ClientTotals:
     connections: int = 0
     reconnects: int = 0
     display_frames: int = 0
+    frames_before_payload: int = 0        # displayed before the first payload was applied (black)
     recorded_frames: int = 0
     server_types: list = field(default_factory=list)   # per applied frame: (FrameType, bytes)
 
@@ -166,6 +169,9 @@ class LiveClient:
         if config.start >= self.trace.duration:
             raise ValueError(f"--start {config.start:g} s is past the end of trace {config.trace!r} "
                              f"({self.trace.duration:.1f} s)")
+        if config.anchor is not None:   # its pose at `start` goes to the anchor (the scene's spawn point for "spawn")
+            scene = load_scene(config.scene) if config.anchor.strip() == SPAWN else None
+            self.trace = place_trace(self.trace, config.anchor, scene, config.start)
         remaining = self.trace.duration - config.start
         self.duration = min(config.duration, remaining) if config.duration is not None else remaining
         self.out = Path(config.out)
@@ -368,6 +374,7 @@ class LiveClient:
         eye rendered, for the cost ratio)."""
         t0 = time.perf_counter()
         image = self.method_client.render(pose)
+        holes = self.method_client.coverage().figures()
         stats = getattr(self.method_client, "stats", {}) or {}
         ms = dict(stats.get("ms", {}))
         ms.setdefault("render", (time.perf_counter() - t0) * 1e3)
@@ -377,7 +384,7 @@ class LiveClient:
             stereo = {"left": frame.left, "right": frame.right, "position": frame.other_camera.pose.position.tolist(),
                       "quat": frame.other_camera.pose.quat.tolist(), "cost_ratio": frame.cost_ratio}
             ms.update({f"stereo_{k}": v for k, v in frame.ms.items()})
-        return image, ms, stereo
+        return image, ms, stereo, holes
 
     # ------------------------------------------------------------------ display
 
@@ -414,8 +421,9 @@ class LiveClient:
             await self._request_reference(session.tick(loop.time()))
             pose = self.pose_at(t)
             record = index % self.cfg.record_every == 0
-            image, ms, stereo = await self.worker.call(self._render, pose, record)
+            image, ms, stereo, holes = await self.worker.call(self._render, pose, record)
             tot.display_frames += 1
+            tot.frames_before_payload += self.newest is None
             if self.newest is not None and record:
                 name = f"frames/display_{index:05d}.png"
                 images = {name: image}
@@ -425,7 +433,7 @@ class LiveClient:
                     "index": index, "t": t, "position": pose.position.tolist(), "quat": pose.quat.tolist(),
                     "image": name, "frame_id": int(n.frame_id), "age_ms": (t - n.t) * 1e3,
                     "pose_error_cm": render_pose.distance_to(pose) * 100,
-                    "pose_error_deg": render_pose.angle_to_deg(pose), "client_ms": ms}
+                    "pose_error_deg": render_pose.angle_to_deg(pose), "client_ms": ms, **holes}
                 if stereo is not None:
                     left, right = f"frames/left_{index:05d}.png", f"frames/right_{index:05d}.png"
                     images.update({left: stereo["left"], right: stereo["right"]})
@@ -489,6 +497,7 @@ class LiveClient:
         summary = {
             "trace": cfg.trace, "start_s": cfg.start, "duration_s": tot.duration_s, "transport": cfg.transport,
             "display_frames": tot.display_frames, "every": cfg.record_every,
+            "frames_before_payload": tot.frames_before_payload,
             "mbps": rate(tot.bytes_socket), "mbps_video": rate(tot.bytes_video),
             "mbps_geometry": rate(tot.bytes_geometry), "server_frames": c.frames_received,
             "frames_applied": c.frames_applied, "frames_lost": c.frames_lost,

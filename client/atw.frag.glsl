@@ -3,6 +3,8 @@
 // u_h is the homography display NDC (x, y, 1) -> frame NDC (homogeneous): K_frame * R_frame^T * R_now * K_now^-1.
 // Directions behind the frame's camera are pushed out to its border, and clamp-to-edge sampling fills everything
 // outside the frame with the closest edge pixel in that direction.
+// Alpha says what the pixel shows (client.method.PixelCoverage): 1 = the frame's content in this direction,
+// 0.5 = only the repeated edge pixel (outside the frame), 0 = nothing (the clear value).
 in vec2 v_uv;
 
 uniform sampler2D u_frame;  // decoded colour, bottom row first, linear filtering, clamp to edge
@@ -12,7 +14,9 @@ out vec4 f_color;
 
 void main() {
     vec3 q = u_h * vec3(v_uv * 2.0 - 1.0, 1.0);
+    bool in_front = q.z > 0.0;
     q.z = max(q.z, max(1e-6 * length(q.xy), 1e-30));
     vec2 uv = q.xy / q.z * 0.5 + 0.5;
-    f_color = vec4(texture(u_frame, uv).rgb, 1.0);
+    bool inside = in_front && all(greaterThanEqual(uv, vec2(0.0))) && all(lessThanEqual(uv, vec2(1.0)));
+    f_color = vec4(texture(u_frame, uv).rgb, inside ? 1.0 : 0.5);
 }

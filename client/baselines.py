@@ -10,6 +10,9 @@ depth discontinuities are stretched, not dropped, so disocclusions show smeared 
 are vertices at infinity. Whatever the mesh does not cover (outside the server's frustum) is filled with the ATW
 re-orientation of the frame first.
 
+Coverage (`MethodClient.coverage`): the passes write alpha -- 1 where they show the frame's content, 0.5 where
+ATW repeats edge pixels outside the frame -- and `render` reads it back with the colour.
+
 Both render at the display's own size and field of view. `receive` validates everything before it changes the
 displayed state: a payload of the wrong method or with a bad pose or depth blob raises ProtocolError, undecodable
 video raises VideoError, and the last good frame keeps being shown. A non-IDR access unit while the video decoder
@@ -23,7 +26,7 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from quadcast.client.method import MethodClient
+from quadcast.client.method import Coverage, MethodClient, PixelCoverage
 from quadcast.codec.decoder import AtlasDecoder
 from quadcast.protocol.depth import DEFAULT_MAX_DEPTH_PIXELS, decode_depth
 from quadcast.protocol.errors import ProtocolError
@@ -99,6 +102,7 @@ class _BaselineClient(MethodClient):
         self._fbo = self.ctx.framebuffer([self._out], self._out_depth)
         self._atw = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "atw.frag.glsl")
         self._fullscreen = self.ctx.vertex_array(self._atw, [])
+        self._coverage = Coverage.empty(self.width, self.height)
 
     @property
     def needs_reference(self) -> bool:
@@ -141,11 +145,22 @@ class _BaselineClient(MethodClient):
     def render(self, pose: Pose) -> np.ndarray:
         """The displayed image (height, width, 3) uint8, top row first, for the current `pose`."""
         if self.frame is None:
+            self._coverage = Coverage.empty(self.width, self.height)
             return np.zeros((self.height, self.width, 3), np.uint8)
         self._fbo.use()
-        self._fbo.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
+        self._fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self._draw(pose)
-        return read_texture(self._out, 4, "u1")[..., :3]
+        rgba = read_texture(self._out, 4, "u1")
+        # The passes write what each pixel shows as alpha: 1 drawn, 0.5 smeared edge pixels, 0 (clear) nothing.
+        alpha = rgba[..., 3]
+        self._coverage = Coverage(np.where(alpha >= 192, PixelCoverage.DRAWN, np.where(
+            alpha >= 64, PixelCoverage.SMEARED, PixelCoverage.EMPTY)).astype(np.uint8))
+        return np.ascontiguousarray(rgba[..., :3])
+
+    def coverage(self) -> Coverage:
+        """From the last render's alpha: the frame's content where the warp (and MeshWarp's mesh) lands inside the
+        frame, smeared edge pixels where ATW samples outside it."""
+        return self._coverage
 
     def close(self) -> None:
         self.decoder.close()

@@ -7,7 +7,7 @@ import time
 import moderngl
 import numpy as np
 
-from quadcast.client.method import MethodClient
+from quadcast.client.method import Coverage, MethodClient
 from quadcast.client.stereo import STEREO_MODES, MeshStereo, StereoFrame
 from quadcast.codec.decoder import AtlasDecoder, VideoError
 from quadcast.protocol.errors import ProtocolError
@@ -55,6 +55,7 @@ class QuasarClient(MethodClient):
         self.last_frame_id = -1
         self.stats: dict = {}
         self._stereo: MeshStereo | None = None  # made on the first stereo frame
+        self._coverage = Coverage.empty(width, height)
 
     @property
     def needs_reference(self) -> bool:
@@ -142,11 +143,17 @@ class QuasarClient(MethodClient):
         t0 = time.perf_counter()
         camera = Camera(pose, self.frustum, self.width, self.height)
         if self.atlas is None:
+            self._coverage = Coverage.empty(self.width, self.height)
             return np.zeros((self.height, self.width, 3), np.uint8)
         self.view.render(self.mesh, camera, self.atlas)
-        image = self.view.read_color()
+        image, drawn = self.view.read_color_drawn()
+        self._coverage = Coverage.from_masks(drawn)
         self.stats.setdefault("ms", {})["render"] = (time.perf_counter() - t0) * 1e3
         return image
+
+    def coverage(self) -> Coverage:
+        """Where the last `render` drew a quad (the mesh view's alpha); nothing else fills the display."""
+        return self._coverage
 
     # ------------------------------------------------------------------------------------------------ stereo
     def stereo_frame(self, pose: Pose, mode: str = "yoro", with_rendered: bool = False, dominant: str = "left",

@@ -82,7 +82,8 @@ class FramePayload:
 
 def residual_to_reference_bytes(frames) -> float | None:
     """Mean bytes of a residual frame over mean bytes of a reference frame, from ``(FrameType, bytes)`` pairs
-    (QUASAR §4: residual frames are 2-3x smaller); None without both kinds."""
+    (QUASAR §4: residual frames are 2-3x smaller); None without both kinds. `frames` may be any iterable (read
+    once)."""
     frames = list(frames)
     ref = [n for kind, n in frames if kind == FrameType.REFERENCE]
     res = [n for kind, n in frames if kind == FrameType.RESIDUAL]

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from quadcast.protocol.pose import MAX_POSITION_M, MAX_TIME_S
-from quadcast.protocol.prediction import PosePredictor
+from quadcast.protocol.prediction import PosePredictor, PredictorSettings
 
 __all__ = ["ServerSessionConfig", "ServerSession", "ServerCounters", "EncodeFrame", "FrameQueue", "QueueCounters",
            "ClientSession", "ClientCounters", "RequestReference"]
@@ -116,7 +116,7 @@ class ServerSessionConfig:
     """
 
     predict: bool = True
-    smooth: bool = False
+    predictor: PredictorSettings | None = None   # None: quadcast.protocol.prediction.DEFAULT_PREDICTOR
     downlink_s: float = 0.04
     max_prediction_s: float = 0.5
     encode_s: float = 0.0
@@ -171,7 +171,7 @@ class ServerSession:
 
     def __init__(self, config: ServerSessionConfig | None = None) -> None:
         self.config = config or ServerSessionConfig()
-        self.predictor = PosePredictor(smooth=self.config.smooth)
+        self.predictor = PosePredictor(self.config.predictor)
         self.queue = FrameQueue(self.config.queue_frames)
         self.counters = ServerCounters()
         self.encode_estimate_s = self.config.encode_s

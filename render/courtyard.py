@@ -16,13 +16,17 @@ import trimesh
 from scipy.ndimage import zoom
 
 from quadcast.render.scene import (Animation, DirectionalLight, Material, Mesh, PointLight, Scene, SceneObject,
-                          compose_transform)
+                                   Spawn, compose_transform)
 
 HALF = 8.0          # the open square's half-size
 WALL = 11.0         # back walls of the arcades
 GALLERY_Y = 4.0     # gallery floor height
 SPACING = 2.5       # column spacing
 COLUMN_R = 0.25
+# Where `--anchor spawn` starts a head trace: the open square's south side at eye height, facing east (+X) along
+# it. Its very centre holds the fountain (a 1.6 m eye would be inside its bowl); from here 11 m of open flagstones
+# lie ahead and 3.5 m to the left before the fountain's basin, 2.5 m to the right before the arcade.
+SPAWN = Spawn((-5.5, 1.6, 5.5), -90.0)
 
 
 # ------------------------------------------------------------------------------------------ procedural textures
@@ -273,7 +277,7 @@ def courtyard_scene() -> Scene:
     lights += [PointLight(np.array([0.0, 2.5, 9.5]), cool, 2.5, 6.0), PointLight(np.array([0, 2.5, -9.5]), warm,
                                                                                 2.5, 6.0)]
     return Scene("courtyard", objects, sun, lights, ambient=np.array([0.16, 0.17, 0.2]),
-                 sky=np.array([0.55, 0.70, 0.92]))
+                 sky=np.array([0.55, 0.70, 0.92]), spawn=SPAWN)
 
 
 def static_courtyard_scene() -> Scene:

@@ -86,6 +86,13 @@ def compute(ctx: moderngl.Context, path: str | Path, **defines) -> moderngl.Comp
     return _compute_cached(ctx, Path(path).resolve(), tuple(sorted(defines.items())))
 
 
+def read_buffer(buffer: moderngl.Buffer, size: int) -> bytes:
+    """The first `size` bytes of a GL buffer. Zero bytes give b"" (moderngl cannot map an empty range)."""
+    if size < 0 or size > buffer.size:
+        raise ValueError(f"read_buffer: size {size} is outside the buffer's 0..{buffer.size} bytes")
+    return buffer.read(size=size) if size else b""
+
+
 def set_uniforms(prog, **values) -> None:
     """Set the uniforms a program actually uses (the GLSL compiler drops unused ones)."""
     for name, value in values.items():

@@ -167,6 +167,12 @@ class MeshView:
     def read_color(self) -> np.ndarray:
         return read_texture(self.color, 4, "u1")[..., :3]
 
+    def read_color_drawn(self) -> tuple[np.ndarray, np.ndarray]:
+        """The colour (H, W, 3) and where the mesh drew (H, W) bool, from one read-back: the target is cleared to
+        alpha 0 and every mesh fragment writes alpha 1."""
+        rgba = read_texture(self.color, 4, "u1")
+        return np.ascontiguousarray(rgba[..., :3]), rgba[..., 3] > 0
+
     def read_depth(self) -> np.ndarray:
         """Linear view depth, top row first; inf where nothing was drawn."""
         depth = read_texture(self.view_depth, 1, "f4")

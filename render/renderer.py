@@ -66,10 +66,21 @@ class GBuffer:
     def read_color(self) -> np.ndarray:
         return read_texture(self.color, 4, "u1")[..., :3]
 
-    def read_depth(self) -> np.ndarray:
-        """Linear view depth in metres (inf where nothing was hit)."""
-        pos = read_texture(self.position, 4, "f4")
+    def read_depth(self, region: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        """Linear view depth in metres (inf where nothing was hit); of `region` (x, y, w, h from the top-left)
+        only, when given."""
+        pos = self._read(2, 4, "f4", region)
         return np.where(pos[..., 3] > 0, -pos[..., 2], np.inf).astype(np.float32)
+
+    def _read(self, attachment: int, components: int, dtype: str, region) -> np.ndarray:
+        if region is None:
+            tex = self.geometry_fbo.color_attachments[attachment]
+            return read_texture(tex, components, dtype)
+        x, y, w, h = region
+        data = self.geometry_fbo.read(viewport=(x, self.height - y - h, w, h), components=components,
+                                      attachment=attachment, dtype=dtype)
+        shape = (h, w, components) if components > 1 else (h, w)
+        return np.frombuffer(data, np.dtype(dtype)).reshape(shape)[::-1].copy()
 
     def read_depth_buffer(self) -> np.ndarray:
         """The raw [0, 1] depth buffer."""
@@ -78,8 +89,8 @@ class GBuffer:
     def read_normal(self) -> np.ndarray:
         return read_texture(self.normal, 4, "f2")[..., :3].astype(np.float32)
 
-    def read_object_id(self) -> np.ndarray:
-        return read_texture(self.object_id, 1, "i4")
+    def read_object_id(self, region: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        return self._read(3, 1, "i4", region)
 
     def read(self) -> RenderedFrame:
         return RenderedFrame(self.read_color(), self.read_depth(), self.read_normal(), self.read_object_id())
@@ -101,6 +112,9 @@ class _GpuMesh:
         self.ibo = ctx.buffer(mesh.indices.astype("u4").tobytes())
         self._vaos: dict[int, moderngl.VertexArray] = {}
         self.ctx = ctx
+        lo, hi = pos.min(axis=0), pos.max(axis=0)
+        self.box_corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                     for z in (lo[2], hi[2])], np.float64)     # object space
         self.geometry_vao = self.vao_for(geometry_prog)
         self.shadow_vao = ctx.vertex_array(shadow_prog, [(self.positions, "3f", "in_position")], self.ibo)
         mat = mesh.material
@@ -123,6 +137,12 @@ class _GpuMesh:
                                                             (self.uvs, "2f", "in_uv")) if name in prog]
             self._vaos[key] = self.ctx.vertex_array(prog, attrs, self.ibo)
         return self._vaos[key]
+
+
+def _gl_rect(region: tuple[int, int, int, int], height: int) -> tuple[int, int, int, int]:
+    """A (x, y, w, h) rect with y from the top row, in GL's bottom-left convention."""
+    x, y, w, h = region
+    return (int(x), int(height - y - h), int(w), int(h))
 
 
 class DeferredRenderer:
@@ -179,6 +199,38 @@ class DeferredRenderer:
                 gm.shadow_vao.render(moderngl.TRIANGLES)
         self._shadow_time = t
 
+    def moving_region(self, camera: Camera, times, margin_px: int = 6) -> tuple[int, int, int, int]:
+        """The image rectangle (x, y, w, h, from the top-left corner) outside which the scene looks the same from
+        `camera` at every time in `times`: the bounding boxes of the animated objects at those times and their
+        sun shadows (each box swept along the sunlight down to the lowest point of the scene, which contains every
+        surface its shadow can fall on). (0, 0, 0, 0) when nothing animated shows; the whole image when a box
+        reaches behind the camera."""
+        scene, w, h = self.scene, camera.width, camera.height
+        sun = np.asarray(scene.sun.direction, np.float64)
+        sun = sun / np.linalg.norm(sun)
+        floor = float(scene.bounds()[0][1])
+        points = []
+        for obj, gm in zip(scene.objects, self.meshes):
+            if obj.animation is None:
+                continue
+            for t in times:
+                world = (np.c_[gm.box_corners, np.ones(8)] @ obj.model_matrix(t).T)[:, :3]
+                points.append(world)
+                if sun[1] < -1e-6 and obj.cast_shadow:
+                    points.append(world + ((floor - world[:, 1]) / sun[1])[:, None] * sun)
+        if not points:
+            return (0, 0, 0, 0)
+        clip = np.c_[np.concatenate(points), np.ones(sum(len(p) for p in points))] @ (
+            camera.projection_matrix() @ camera.view_matrix()).T
+        if (clip[:, 3] <= camera.frustum.near).any():
+            return (0, 0, w, h)
+        ndc = clip[:, :2] / clip[:, 3:4]
+        x0, x1 = (ndc[:, 0].min() + 1) / 2 * w - margin_px, (ndc[:, 0].max() + 1) / 2 * w + margin_px
+        y0, y1 = (1 - ndc[:, 1].max()) / 2 * h - margin_px, (1 - ndc[:, 1].min()) / 2 * h + margin_px
+        x0, y0 = max(0, int(np.floor(x0))), max(0, int(np.floor(y0)))
+        x1, y1 = min(w, int(np.ceil(x1))), min(h, int(np.ceil(y1)))
+        return (x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else (0, 0, 0, 0)
+
     def gbuffer_for(self, width: int, height: int) -> GBuffer:
         key = (int(width), int(height))
         if key not in self._gbuffers:
@@ -200,14 +252,21 @@ class DeferredRenderer:
             gm.vao_for(prog).render(moderngl.TRIANGLES)
 
     def geometry_pass(self, camera: Camera, t: float, target: GBuffer | None = None,
-                      prog: moderngl.Program | None = None, cull: CullFn | None = None) -> GBuffer:
+                      prog: moderngl.Program | None = None, cull: CullFn | None = None,
+                      region: tuple[int, int, int, int] | None = None) -> GBuffer:
         """Fill a G-buffer (the renderer's own for this size unless `target` is given). `prog` may replace the
         G-buffer program with one that includes render/material.glsl (e.g. the server's depth peeling); bind its
         extra textures to units >= 4 before calling. `cull` (see `CullFn`) restricts the pass to the pixels it
-        leaves at depth 1; culled pixels stay cleared, which the lighting pass shades as (cheap) sky."""
+        leaves at depth 1; culled pixels stay cleared, which the lighting pass shades as (cheap) sky. `region`
+        (x, y, w, h, pixels from the top-left corner) renders only there: the rest of the G-buffer keeps what it
+        held."""
         gb = target or self.gbuffer_for(camera.width, camera.height)
         gb.geometry_fbo.use()
-        gb.clear()
+        if region is None:
+            gb.clear()
+        else:
+            gb.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=_gl_rect(region, gb.height))
+            gb.geometry_fbo.scissor = _gl_rect(region, gb.height)
         if cull is not None:
             cull(gb.depth)
             gb.geometry_fbo.use()
@@ -215,15 +274,18 @@ class DeferredRenderer:
         self.ctx.depth_func = "<"
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
         self.draw_geometry(camera, t, prog)
+        gb.geometry_fbo.scissor = None
         gb.camera = camera
         return gb
 
-    def lighting_pass(self, gb: GBuffer, t: float) -> None:
+    def lighting_pass(self, gb: GBuffer, t: float, region: tuple[int, int, int, int] | None = None) -> None:
+        """Shade the G-buffer into its colour (only within `region`, as in `geometry_pass`, when given)."""
         camera = gb.camera
         self.render_shadows(t)
         scene, view = self.scene, camera.view_matrix()
         prog = self.lighting_prog
         gb.color_fbo.use()
+        gb.color_fbo.scissor = None if region is None else _gl_rect(region, gb.height)
         self.ctx.disable(moderngl.DEPTH_TEST)
         gb.albedo.use(0)
         gb.normal.use(1)
@@ -247,11 +309,13 @@ class DeferredRenderer:
                      u_light_pos=light_pos.tobytes(), u_light_color=light_col.tobytes(),
                      u_light_radius=light_rad.tobytes())
         self.fullscreen.render(moderngl.TRIANGLES, vertices=3)
+        gb.color_fbo.scissor = None
 
-    def gbuffer(self, camera: Camera, t: float = 0.0, target: GBuffer | None = None) -> GBuffer:
-        """Geometry and lighting passes; the results stay on the GPU."""
-        gb = self.geometry_pass(camera, t, target)
-        self.lighting_pass(gb, t)
+    def gbuffer(self, camera: Camera, t: float = 0.0, target: GBuffer | None = None,
+                region: tuple[int, int, int, int] | None = None) -> GBuffer:
+        """Geometry and lighting passes (only within `region`, see `geometry_pass`); the results stay on the GPU."""
+        gb = self.geometry_pass(camera, t, target, region=region)
+        self.lighting_pass(gb, t, region)
         return gb
 
     def render(self, camera: Camera, t: float = 0.0) -> RenderedFrame:

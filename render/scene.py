@@ -10,11 +10,16 @@ A scene file lists models with transforms and animations, the sun, point lights,
                 {"primitive": "box", "extents": [1, 1, 1], "color": [0.8, 0.2, 0.2]}],
      "sun": {"direction": [-0.4, -1, -0.3], "color": [1, 0.95, 0.9], "intensity": 3.0, "shadow_extent": 20},
      "point_lights": [{"position": [0, 3, 0], "color": [1, 0.8, 0.6], "intensity": 5, "radius": 8}],
-     "ambient": [0.15, 0.16, 0.18], "sky": [0.55, 0.7, 0.9]}
+     "ambient": [0.15, 0.16, 0.18], "sky": [0.55, 0.7, 0.9],
+     "spawn": {"position": [0, 1.6, 4], "yaw_deg": 0}}
 
 Animations: `rotate` (axis, speed_deg_s, optional center), `translate` (direction, amplitude, period_s: a
 sinusoidal back-and-forth) and `orbit` (center, radius, period_s, axis, optional phase_deg). Every error names
 the offending field, e.g. ``models[0].animation.type``.
+
+Every scene has a *spawn point* (:class:`Spawn`: an eye position and a heading) where `--anchor spawn` puts a
+recorded head trace (:func:`place_trace`): the built-ins declare theirs, a scene file may (``spawn``), and any other
+scene gets :func:`default_spawn` -- in front of a lone object, or in the middle of a large one.
 """
 from __future__ import annotations
 
@@ -28,6 +33,8 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from quadcast.render.traces import SPAWN, Anchor, Trace, TraceError, parse_anchor, resolve_trace
 
 
 class SceneError(ValueError):
@@ -145,6 +152,44 @@ class PointLight:
     radius: float = 8.0
 
 
+@dataclass(frozen=True)
+class Spawn:
+    """Where a visitor starts in a scene: eye ``position`` (metres) and compass heading ``yaw_deg`` (degrees, as
+    trace yaw: 0 looks down -Z, positive turns left)."""
+
+    position: tuple[float, float, float]
+    yaw_deg: float = 0.0
+
+    def anchor(self) -> Anchor:
+        return Anchor(self.position, self.yaw_deg)
+
+
+SPAWN_EYE_HEIGHT = 1.6
+"""Eye height (m) above a scene's floor of :func:`default_spawn`."""
+LARGE_SCENE_M = 20.0
+"""A scene whose ground-plane diagonal is at least this (m) is walked in (spawn in its middle); a smaller one is an
+object looked at from outside."""
+
+
+def default_spawn(bounds: np.ndarray, floor_at=None, fovy_deg: float = 60.0) -> Spawn:
+    """The spawn point of a scene that declares none, from its (2, 3) bounds: in a large scene
+    (:data:`LARGE_SCENE_M`) its middle at eye height above the floor, facing -Z; in front of a smaller one (its +Z
+    side), far enough back for the whole box to fit a ``fovy_deg`` view, at eye height above the floor or the box's
+    mid-height, whichever is higher, facing it (-Z). ``floor_at(x, z)`` gives the floor's height there (e.g.
+    :meth:`Scene.floor_height`; None or a None result: the bounds' bottom)."""
+    lo, hi = np.asarray(bounds, dtype=np.float64)
+    mid = (lo + hi) / 2
+
+    def eye(x: float, z: float) -> float:
+        floor = floor_at(x, z) if floor_at is not None else None
+        return (lo[1] if floor is None else floor) + SPAWN_EYE_HEIGHT
+    if np.hypot(hi[0] - lo[0], hi[2] - lo[2]) >= LARGE_SCENE_M:
+        return Spawn((float(mid[0]), float(eye(mid[0], mid[2])), float(mid[2])), 0.0)
+    radius = float(np.linalg.norm(hi - lo) / 2)
+    z = mid[2] + radius / math.sin(math.radians(fovy_deg) / 2)
+    return Spawn((float(mid[0]), float(max(eye(mid[0], z), mid[1])), float(z)), 0.0)
+
+
 @dataclass
 class Scene:
     name: str
@@ -153,6 +198,7 @@ class Scene:
     point_lights: list[PointLight] = field(default_factory=list)
     ambient: np.ndarray = field(default_factory=lambda: np.array([0.12, 0.13, 0.15]))
     sky: np.ndarray = field(default_factory=lambda: np.array([0.55, 0.70, 0.90]))
+    spawn: Spawn | None = None     # None: default_spawn(bounds)
 
     MAX_POINT_LIGHTS = 16
 
@@ -164,6 +210,8 @@ class Scene:
                              f"got {len(self.point_lights)}")
         for i, obj in enumerate(self.objects):
             obj.object_id = i + 1  # 0 means "nothing" in the G-buffer
+        if self.spawn is None:
+            self.spawn = default_spawn(self.bounds(), self.floor_height)
 
     @property
     def triangle_count(self) -> int:
@@ -172,6 +220,28 @@ class Scene:
     @property
     def is_dynamic(self) -> bool:
         return any(o.animation is not None for o in self.objects)
+
+    def floor_height(self, x: float, z: float) -> float | None:
+        """The height of the lowest surface straight below or above (x, z) at t = 0 (the ground under a roof),
+        or None when no triangle covers that point."""
+        lowest = None
+        point = np.array([x, z], dtype=np.float64)
+        for o in self.objects:
+            p = o.mesh.positions.astype(np.float64) @ o.transform[:3, :3].T + o.transform[:3, 3]
+            tri = p[o.mesh.indices]                                   # (M, 3, 3)
+            a, e1, e2 = tri[:, 0, [0, 2]], tri[:, 1, [0, 2]] - tri[:, 0, [0, 2]], tri[:, 2, [0, 2]] - tri[:, 0, [0, 2]]
+            det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+            ok = np.abs(det) > 1e-12
+            d = point - a
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / det
+                v = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / det
+                inside = ok & (u >= 0) & (v >= 0) & (u + v <= 1)
+            if inside.any():
+                y = tri[inside, 0, 1] + u[inside] * (tri[inside, 1, 1] - tri[inside, 0, 1]) + v[inside] * (
+                    tri[inside, 2, 1] - tri[inside, 0, 1])
+                lowest = float(y.min()) if lowest is None else min(lowest, float(y.min()))
+        return lowest
 
     def bounds(self) -> np.ndarray:
         """(2, 3) world-space bounding box at t = 0."""
@@ -186,6 +256,30 @@ def _unit(v) -> np.ndarray:
     v = np.asarray(v, dtype=np.float64)
     n = np.linalg.norm(v)
     return v / n if n > 0 else np.array([0.0, 1.0, 0.0])
+
+
+def place_trace(trace: Trace, anchor: str | Anchor | None, scene: Scene | None = None, start_s: float = 0.0) -> Trace:
+    """`trace` re-anchored into a scene (:meth:`Trace.anchored`): its pose `start_s` seconds after its first sample
+    goes to `anchor` -- ``"spawn"`` (the scene's :class:`Spawn`; needs `scene`), ``"x,y,z[,yaw_deg]"`` or an
+    :class:`Anchor` -- and the rest keeps its motion relative to that pose. ``None`` leaves the trace as it is."""
+    if anchor is None:
+        return trace
+    if isinstance(anchor, str):
+        anchor = parse_anchor(anchor)
+    if anchor == SPAWN:
+        if scene is None:
+            raise TraceError("anchor 'spawn' needs a scene to take the spawn point from")
+        anchor = scene.spawn.anchor()
+    return trace.anchored(anchor.position, anchor.yaw_deg, at_s=start_s)
+
+
+def scene_trace(trace_spec: str, scene: Scene | None = None, anchor: str | Anchor | None = None,
+                start_s: float = 0.0, duration_s: float | None = None) -> Trace:
+    """The trace `trace_spec` (``builtin:NAME`` or a QUASAR trace file) as `quadcast eval/render/predict` replay it:
+    re-anchored into `scene` at its pose `start_s` seconds in (:func:`place_trace`), then cut to the window from
+    `start_s` lasting `duration_s` (default: to its end)."""
+    trace = place_trace(resolve_trace(trace_spec), anchor, scene, start_s)
+    return trace.window(start_s, duration_s) if start_s or duration_s is not None else trace
 
 
 def compose_transform(position=(0, 0, 0), rotation_deg=(0, 0, 0), scale=1.0) -> np.ndarray:
@@ -237,7 +331,7 @@ def load_scene_file(path: str | Path) -> Scene:
     return scene_from_dict(data, base_dir=path.parent, name=path.stem)
 
 
-_TOP_KEYS = {"models", "sun", "point_lights", "ambient", "sky", "name"}
+_TOP_KEYS = {"models", "sun", "point_lights", "ambient", "sky", "name", "spawn"}
 _MODEL_KEYS = {"path", "primitive", "extents", "radius", "size", "color", "position", "rotation_deg", "scale",
                "animation", "cast_shadow", "name"}
 _ANIM_KEYS = {"type", "axis", "speed_deg_s", "center", "direction", "amplitude", "radius", "period_s", "phase_deg"}
@@ -358,9 +452,13 @@ def scene_from_dict(data: dict, base_dir: Path = Path("."), name: str = "scene")
         lights.append(PointLight(_numbers(ld, "position", where, 3), _numbers(ld, "color", where, 3, [1, 1, 1]),
                                  _number(ld, "intensity", where, 5.0, 0.0),
                                  _number(ld, "radius", where, 8.0, 0.0, strict_lo=True)))
+    spawn = None
+    if "spawn" in data:
+        spawn_d = _check_keys(data["spawn"], {"position", "yaw_deg"}, "spawn")
+        spawn = Spawn(tuple(_numbers(spawn_d, "position", "spawn", 3)), _number(spawn_d, "yaw_deg", "spawn", 0.0))
     return Scene(str(data.get("name", name)), objects, sun, lights,
                  _numbers(data, "ambient", "scene", 3, [0.12, 0.13, 0.15]),
-                 _numbers(data, "sky", "scene", 3, [0.55, 0.70, 0.90]))
+                 _numbers(data, "sky", "scene", 3, [0.55, 0.70, 0.90]), spawn)
 
 
 def _plane(w: float, d: float):
@@ -426,8 +524,14 @@ def _mesh_file_scene(path: Path) -> Scene:
     return scene
 
 
+MONASTERY_SPAWN_XZ = (-3.7, 1.5)
+"""The middle of the monastery's main courtyard (x, z): open flagstones, > 5 m from any wall."""
+MONASTERY_EYE_HEIGHT = 2.0
+
+
 def monastery_scene() -> Scene:
-    """pybullet_data's samurai monastery (125k triangles) with a sun and a few lamps; needs the `scenes` extra."""
+    """pybullet_data's samurai monastery (125k triangles) with a sun and a few lamps; needs the `scenes` extra.
+    Spawn: the middle of its main courtyard, 2 m eye height, facing +X (the courtyard's long open side)."""
     try:
         import pybullet_data
     except ImportError:
@@ -437,10 +541,13 @@ def monastery_scene() -> Scene:
         raise SceneError(f"scene 'monastery': {path} is missing from pybullet_data")
     meshes = load_meshes(path)
     # The OBJ is already Y-up (floor at y = 0, roofs up to 30 m).
+    x, z = MONASTERY_SPAWN_XZ
+    floor = min(float(m.positions[:, 1].min()) for m in meshes)
     scene = Scene("monastery", [SceneObject(m, np.eye(4)) for m in meshes],
                   DirectionalLight(_unit([-0.5, -1.0, -0.35]), intensity=3.0),
-                  [PointLight(np.array([x, 2.5, z]), np.array([1.0, 0.75, 0.45]), 4.0, 7.0)
-                   for x, z in ((-4, -4), (4, -4), (-4, 4), (4, 4))])
+                  [PointLight(np.array([lx, 2.5, lz]), np.array([1.0, 0.75, 0.45]), 4.0, 7.0)
+                   for lx, lz in ((-4, -4), (4, -4), (-4, 4), (4, 4))],
+                  spawn=Spawn((x, floor + MONASTERY_EYE_HEIGHT, z), -90.0))
     lo, hi = scene.bounds()
     scene.sun.shadow_center = (lo + hi) / 2
     scene.sun.shadow_extent = float(np.linalg.norm(hi - lo) / 2)

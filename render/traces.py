@@ -19,10 +19,18 @@ down -Z, positive yaw turns left (towards -X) and positive pitch looks up.
 
 Besides files, a few traces are built in code (:data:`BUILTIN_TRACES`) and
 can be named as ``"builtin:NAME"`` in :func:`resolve_trace`.
+
+A trace recorded in one scene can be replayed in another: :meth:`Trace.anchored`
+keeps its motion relative to one of its poses and moves that pose to an
+:class:`Anchor` (a position and optionally a heading), :func:`parse_anchor`
+reads ``x,y,z[,yaw_deg]`` (or ``spawn``, a scene's own spawn point, see
+:func:`quadcast.render.scene.place_trace`); :meth:`Trace.window` cuts a part of a
+long trace and :meth:`Trace.fastest_window` finds its part with the most motion.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -32,14 +40,18 @@ from scipy.integrate import cumulative_trapezoid
 from scipy.spatial.transform import Rotation, Slerp
 
 __all__ = [
+    "Anchor",
     "BUILTIN_TRACES",
+    "SPAWN",
     "Trace",
     "TraceError",
     "TraceSpeed",
     "builtin_trace",
     "euler_to_rotation",
+    "heading_deg",
     "load_trace",
     "look_at_euler",
+    "parse_anchor",
     "parse_trace",
     "resolve_trace",
 ]
@@ -50,6 +62,11 @@ TRACE_HZ = 60.0
 EULER_SEQ = "xyz"
 #: Number of whitespace-separated fields on a trace line.
 FIELDS_PER_LINE = 7
+#: The anchor that names a scene's own spawn point (``--anchor spawn``).
+SPAWN = "spawn"
+#: Depth (m) at which :meth:`Trace.fastest_window` weighs translation against rotation: moving 1 m sideways shifts
+#: what is this far away as much as turning by 1/APPARENT_DEPTH_M radians.
+APPARENT_DEPTH_M = 3.0
 
 
 class TraceError(ValueError):
@@ -63,13 +80,89 @@ def euler_to_rotation(euler_deg: np.ndarray) -> Rotation:
 
 
 def rotation_to_euler(rotation: Rotation) -> np.ndarray:
-    """Trace angles ``(pitch, yaw, roll)`` in degrees for a rotation (yaw in [-90, 90], the others (-180, 180])."""
-    return rotation.as_euler(EULER_SEQ, degrees=True)
+    """Trace angles ``(pitch, yaw, roll)`` in degrees for a rotation (yaw in [-90, 90], the others (-180, 180]).
+    At yaw = ±90° (gimbal lock) only pitch ∓ roll is defined; scipy then picks roll = 0 (without its warning)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Gimbal lock detected")
+        return rotation.as_euler(EULER_SEQ, degrees=True)
 
 
 def unwrap_degrees(angles_deg: np.ndarray) -> np.ndarray:
     """Remove 360° jumps between consecutive rows of an angle array (degrees, along axis 0)."""
     return np.unwrap(np.asarray(angles_deg, dtype=np.float64), period=360.0, axis=0)
+
+
+def heading_deg(rotation: Rotation) -> np.ndarray | float:
+    """The compass heading (degrees, as trace yaw: 0 looks down -Z, positive turns left) of where each camera looks:
+    its forward direction projected on the ground plane; 0 for a camera looking straight up or down."""
+    forward = np.atleast_2d(rotation.apply([0.0, 0.0, -1.0]))
+    vertical = np.hypot(forward[:, 0], forward[:, 2]) < 1e-9
+    heading = np.where(vertical, 0.0, np.degrees(np.arctan2(-forward[:, 0], -forward[:, 2])))
+    return float(heading[0]) if rotation.single else heading
+
+
+def _euler_near(quats: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Trace angles of the rotations ``quats`` (M, 4) on the 360° branch and the one of their two angle triples
+    nearest ``reference`` (M, 3) degrees -- both triples are the same rotation, so this only keeps angles
+    continuous."""
+    raw = rotation_to_euler(Rotation.from_quat(quats))
+    # Every rotation has two angle triples: (p, y, r) and (p + 180, 180 - y, r + 180).
+    candidates = []
+    for angles in (raw, raw * [1.0, -1.0, 1.0] + [180.0, 180.0, 180.0]):
+        angles = angles + 360.0 * np.round((reference - angles) / 360.0)
+        candidates.append(angles)
+    far = np.abs(candidates[0] - reference).sum(1) > np.abs(candidates[1] - reference).sum(1)
+    euler = np.where(far[:, None], candidates[1], candidates[0])
+    # Within 0.001° of gimbal lock (yaw ±90°) pitch and roll trade off: keep the reference roll and solve pitch and
+    # yaw for it (off by at most about as much).
+    # With R = Rz(roll) Ry(yaw) Rx(pitch), M = Rz(-roll) R = Ry(yaw) Rx(pitch) has row 1 = (0, cos p, -sin p).
+    locked = np.abs(np.abs(raw[:, 1]) - 90.0) < 1e-3
+    if np.any(locked):
+        roll = reference[locked, 2]
+        m = (Rotation.from_euler("z", -roll[:, None], degrees=True) * Rotation.from_quat(quats[locked])).as_matrix()
+        pitch = np.degrees(np.arctan2(-m[:, 1, 2], m[:, 1, 1]))
+        ry = m @ Rotation.from_euler("x", -pitch[:, None], degrees=True).as_matrix()
+        yaw = np.degrees(np.arctan2(ry[:, 0, 2], ry[:, 0, 0]))
+        fixed = np.stack([pitch, yaw, roll], axis=1)
+        euler[locked] = fixed + 360.0 * np.round((reference[locked] - fixed) / 360.0)
+    return euler
+
+
+@dataclass(frozen=True)
+class Anchor:
+    """Where a re-anchored trace starts: its reference pose goes to ``position`` (metres) and turns (about +Y) to
+    heading ``yaw_deg`` (degrees, as trace yaw; None keeps the trace's own heading: a pure translation)."""
+
+    position: tuple[float, float, float]
+    yaw_deg: float | None = None
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.position, dtype=np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise TraceError(f"anchor position must be 3 finite numbers, got {self.position!r}")
+        if self.yaw_deg is not None and not np.isfinite(self.yaw_deg):
+            raise TraceError(f"anchor yaw must be a finite number of degrees, got {self.yaw_deg!r}")
+        object.__setattr__(self, "position", tuple(float(v) for v in p))
+
+    def __str__(self) -> str:
+        text = ",".join(f"{v:g}" for v in self.position)
+        return text if self.yaw_deg is None else f"{text},{self.yaw_deg:g}"
+
+
+def parse_anchor(text: str) -> Anchor | str:
+    """``"x,y,z"`` or ``"x,y,z,yaw_deg"`` -> :class:`Anchor`; ``"spawn"`` -> :data:`SPAWN` (resolved against a
+    scene by :func:`quadcast.render.scene.place_trace`). Anything else raises :class:`TraceError` naming it."""
+    if not isinstance(text, str) or not text.strip():
+        raise TraceError(f"anchor must be 'spawn' or 'x,y,z[,yaw_deg]', got {text!r}")
+    text = text.strip()
+    if text == SPAWN:
+        return SPAWN
+    fields = [f.strip() for f in text.split(",")]
+    if len(fields) not in (3, 4):
+        raise TraceError(f"anchor {text!r}: expected 'spawn' or 'x,y,z[,yaw_deg]' (3 or 4 numbers), "
+                         f"got {len(fields)} fields")
+    values = [_finite(token, f"anchor {text!r}: {label}") for label, token in zip(("x", "y", "z", "yaw_deg"), fields)]
+    return Anchor(tuple(values[:3]), values[3] if len(values) == 4 else None)
 
 
 def look_at_euler(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -192,17 +285,10 @@ class Trace:
         return positions[0], quats[0]
 
     def _euler_at(self, query: np.ndarray, quats: np.ndarray) -> np.ndarray:
-        """Unwrapped ``(pitch, yaw, roll)`` of interpolated rotations, kept on the same 360° branch as the source."""
-        raw = rotation_to_euler(Rotation.from_quat(quats))
+        """Unwrapped ``(pitch, yaw, roll)`` of interpolated rotations, kept on the same 360° branch as the source
+        (the angle triple nearer the linearly interpolated source angles)."""
         reference = np.stack([np.interp(query, self.times, self.euler_deg[:, k]) for k in range(3)], axis=1)
-        # Every rotation has two angle triples: (p, y, r) and (p + 180, 180 - y, r + 180). Take the one nearer
-        # the linearly interpolated source angles, on their 360° branch.
-        candidates = []
-        for angles in (raw, raw * [1.0, -1.0, 1.0] + [180.0, 180.0, 180.0]):
-            angles = angles + 360.0 * np.round((reference - angles) / 360.0)
-            candidates.append(angles)
-        far = np.abs(candidates[0] - reference).sum(1) > np.abs(candidates[1] - reference).sum(1)
-        return np.where(far[:, None], candidates[1], candidates[0])
+        return _euler_near(quats, reference)
 
     def resample(self, hz: float) -> Trace:
         """The trace sampled uniformly at ``hz`` from its first time (the last sample lands at or before the end)."""
@@ -238,6 +324,57 @@ class Trace:
         positions[kept] = self.positions[inside]
         euler[kept] = self.euler_deg[inside]
         return Trace(self.name, query, positions, euler)
+
+    def window(self, start_s: float = 0.0, duration_s: float | None = None) -> Trace:
+        """The part of the trace from ``start_s`` seconds after its first sample, lasting ``duration_s`` (default:
+        to the end); times are not shifted (see :meth:`slice`). Raises :class:`TraceError` when the window does not
+        fit in the trace."""
+        if not np.isfinite(start_s) or start_s < 0:
+            raise TraceError(f"trace {self.name!r}: start must be a finite number of seconds >= 0, got {start_s!r}")
+        if duration_s is not None and (not np.isfinite(duration_s) or duration_s <= 0):
+            raise TraceError(f"trace {self.name!r}: duration must be > 0 s, got {duration_s!r}")
+        end = self.duration if duration_s is None else start_s + duration_s
+        if end > self.duration + 1e-9 or start_s >= self.duration:
+            raise TraceError(f"trace {self.name!r} lasts {self.duration:.2f} s; a window from {start_s:g} s"
+                             + (f" lasting {duration_s:g} s" if duration_s is not None else "") + " does not fit")
+        t0 = float(self.times[0])
+        return self.slice(t0 + start_s, t0 + min(end, self.duration))
+
+    def anchored(self, position, yaw_deg: float | None = None, at_s: float = 0.0) -> Trace:
+        """The trace moved rigidly into another scene: its motion relative to its pose ``at_s`` seconds after its
+        first sample is kept, and that pose goes to ``position`` (3,) facing heading ``yaw_deg`` (degrees, as trace
+        yaw; the whole trace turns about +Y by the difference to that pose's heading). ``yaw_deg=None`` keeps the
+        headings: a pure translation."""
+        anchor = Anchor(tuple(np.asarray(position, dtype=np.float64).reshape(-1)), yaw_deg)
+        if not np.isfinite(at_s) or not 0 <= at_s <= self.duration + 1e-9:
+            raise TraceError(f"trace {self.name!r}: anchor time {at_s!r} s is outside its {self.duration:.2f} s")
+        p_ref, q_ref = self.pose_at(float(self.times[0]) + at_s)
+        turn_deg = 0.0 if anchor.yaw_deg is None else anchor.yaw_deg - heading_deg(Rotation.from_quat(q_ref))
+        turn = Rotation.from_euler("y", turn_deg, degrees=True)
+        positions = np.asarray(anchor.position) + turn.apply(self.positions - p_ref)
+        quats = (turn * self.rotations).as_quat()
+        euler = _euler_near(quats, self.euler_deg + [0.0, turn_deg, 0.0])
+        return Trace(f"{self.name}@{anchor}", self.times.copy(), positions, euler)
+
+    def fastest_window(self, duration_s: float) -> float:
+        """Start (seconds after the first sample) of the ``duration_s`` window with the most apparent motion: the
+        sum over its samples of the turn (radians) plus the move (metres) / :data:`APPARENT_DEPTH_M`. The window
+        starts at a sample; a trace no longer than ``duration_s`` gives 0."""
+        if not np.isfinite(duration_s) or duration_s <= 0:
+            raise TraceError(f"trace {self.name!r}: window duration must be > 0 s, got {duration_s!r}")
+        if duration_s >= self.duration - 1e-9:
+            if duration_s > self.duration + 1e-9:
+                raise TraceError(f"trace {self.name!r} lasts {self.duration:.2f} s, shorter than a "
+                                 f"{duration_s:g} s window")
+            return 0.0
+        rotations = self.rotations
+        turn = (rotations[1:] * rotations[:-1].inv()).magnitude()
+        move = np.linalg.norm(np.diff(self.positions, axis=0), axis=1)
+        motion = np.concatenate([[0.0], np.cumsum(turn + move / APPARENT_DEPTH_M)])
+        starts = self.times[self.times + duration_s <= self.times[-1] + 1e-9]
+        ends = np.searchsorted(self.times, starts + duration_s - 1e-9)
+        amount = motion[ends] - motion[: len(starts)]
+        return float(starts[int(np.argmax(amount))] - self.times[0])
 
     # ------------------------------------------------------------------ stats
     def speed(self) -> TraceSpeed:
@@ -281,6 +418,17 @@ class Trace:
 
 
 # ---------------------------------------------------------------------- parsing
+def _finite(token: str, what: str) -> float:
+    """``token`` as a finite float; otherwise a :class:`TraceError` saying ``what`` is not a (finite) number."""
+    try:
+        value = float(token)
+    except ValueError:
+        raise TraceError(f"{what} is not a number: {token!r}") from None
+    if not np.isfinite(value):
+        raise TraceError(f"{what} is not finite: {token!r}")
+    return value
+
+
 def parse_trace(text: str, name: str = "<text>") -> Trace:
     """Parse QUASAR trace text (``x y z pitch yaw roll t_ms`` per line) into a :class:`Trace`.
 
@@ -299,15 +447,8 @@ def parse_trace(text: str, name: str = "<text>") -> Trace:
                 f"{name}:{line_number}: expected {FIELDS_PER_LINE} fields "
                 f"(x y z pitch yaw roll t_ms), got {len(fields)}: {stripped!r}"
             )
-        values: list[float] = []
-        for column, token in zip(("x", "y", "z", "pitch", "yaw", "roll", "t_ms"), fields):
-            try:
-                value = float(token)
-            except ValueError:
-                raise TraceError(f"{name}:{line_number}: {column} is not a number: {token!r}") from None
-            if not np.isfinite(value):
-                raise TraceError(f"{name}:{line_number}: {column} is not finite: {token!r}")
-            values.append(value)
+        values = [_finite(token, f"{name}:{line_number}: {column}")
+                  for column, token in zip(("x", "y", "z", "pitch", "yaw", "roll", "t_ms"), fields)]
         if rows and values[6] <= rows[-1][6]:
             raise TraceError(
                 f"{name}:{line_number}: time {values[6]:g} ms is not after the previous "

@@ -35,26 +35,7 @@ bool load(ivec2 p, out vec3 n, out vec3 pos) {
     return true;
 }
 
-// The 10x10 tile of pixels this 8x8 workgroup's quads read (its own and a one-pixel border): every pixel's
-// plane is loaded once into shared memory instead of by each of the nine quads that use it.
-shared vec4 s_plane[100];    // unit normal (kept within u_max_angle of the view ray), plane offset d = dot(n, P)
-shared vec4 s_pos[100];      // view position, w = 1 where the pixel has a plane (0: masked out / nothing)
-
 void main() {
-    ivec2 base = ivec2(gl_WorkGroupID.xy) * 8 - 1;
-    for (uint k = gl_LocalInvocationIndex; k < 100u; k += 64u) {
-        ivec2 q = base + ivec2(int(k % 10u), int(k / 10u));
-        vec3 n, P;
-        if (load(q, n, P)) {
-            n = limit_grazing(n, normalize(-P), u_max_angle);
-            s_plane[k] = vec4(n, dot(n, P));
-            s_pos[k] = vec4(P, 1.0);
-        } else {
-            s_pos[k] = vec4(0.0);
-        }
-    }
-    barrier();
-
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);
     if (any(greaterThanEqual(p, u_size))) return;
     uint index = uint(p.y * u_size.x + p.x);
@@ -62,9 +43,8 @@ void main() {
     e.plane = vec4(0.0);
     for (int s = 0; s < 4; ++s) e.off[s] = vec4(0.0);
 
-    int centre = int(gl_LocalInvocationID.y + 1u) * 10 + int(gl_LocalInvocationID.x + 1u);
-    if (s_pos[centre].w == 0.0) { quads[index] = e; return; }
-    vec3 P0 = s_pos[centre].xyz;
+    vec3 n0, P0;
+    if (!load(p, n0, P0)) { quads[index] = e; return; }
     if (u_exclude_inner) {
         vec2 r = P0.xy / -P0.z;
         if (r.x > u_inner_frustum.x && r.x < u_inner_frustum.y && r.y > u_inner_frustum.z && r.y < u_inner_frustum.w) {
@@ -72,8 +52,8 @@ void main() {
             return;
         }
     }
-    vec3 n0 = s_plane[centre].xyz;
-    float d0 = s_plane[centre].w;
+    n0 = limit_grazing(n0, normalize(-P0), u_max_angle);
+    float d0 = dot(n0, P0);
 
     // Neighbour planes (3x3 block; the centre is the pixel itself).
     vec3 nn[9];
@@ -81,10 +61,9 @@ void main() {
     bool ok[9];
     for (int j = 0; j < 3; ++j) for (int i = 0; i < 3; ++i) {
         int k = j * 3 + i;
-        int t = centre + (j - 1) * 10 + (i - 1);
-        ok[k] = (k != 4) && s_pos[t].w != 0.0;
-        nn[k] = s_plane[t].xyz;
-        dn[k] = s_plane[t].w;
+        vec3 n, P;
+        ok[k] = (k != 4) && load(p + ivec2(i - 1, j - 1), n, P);
+        if (ok[k]) { n = limit_grazing(n, normalize(-P), u_max_angle); nn[k] = n; dn[k] = dot(n, P); }
     }
 
     // Offsets at the 3x3 lattice points (a, b) in half-pixel steps from the pixel's top-left corner.

@@ -18,7 +18,7 @@ import numpy as np
 from quadcast.protocol.frame import FrameStats
 from quadcast.protocol.quads import QuadFrame, QuadSet, packed_size_bits_per_quad
 from quadcast.render.camera import Camera
-from quadcast.render.gl import compute, set_uniforms
+from quadcast.render.gl import compute, read_buffer, set_uniforms
 from quadcast.render.quadmesh import QUAD_FLOATS
 
 HERE = Path(__file__).resolve().parent
@@ -160,8 +160,8 @@ class QuadGenerator:
             prog.run((w + 7) // 8, (h + 7) // 8)
             ctx.memory_barrier()
         count = min(int(np.frombuffer(self.counter.read(), np.uint32)[0]), self.capacity)
-        rows = np.frombuffer(self.gathered.read(size=count * QUAD_FLOATS * 4), np.float32).reshape(count,
-                                                                                                     QUAD_FLOATS)
+        rows = np.frombuffer(read_buffer(self.gathered, count * QUAD_FLOATS * 4), np.float32).reshape(count,
+                                                                                                       QUAD_FLOATS)
         quads = gathered_to_quadset(rows)
         t3 = time.perf_counter()
         timings.quads, timings.merge, timings.gather = (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3

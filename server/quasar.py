@@ -98,6 +98,7 @@ class QuasarServer(MethodServer):
         self.reference_depth: np.ndarray | None = None
         self.reference_ids: np.ndarray | None = None
         self.frames_since_reference = 0
+        self._reference_time = 0.0
         self._force_reference = True
 
     def generator_for(self, width: int, height: int) -> QuadGenerator:
@@ -129,11 +130,16 @@ class QuasarServer(MethodServer):
         gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity)
         wide_cam = wide_camera(camera, s.wide_fovy_deg, s.wide_scale)
         wide_gb = self.renderer.gbuffer(wide_cam, t, target=self.wide_gbuffer)
-        # The reference view is rendered again only in a scene that moves (to find what changed, §3.5.2, and for
-        # its current colour); in a static scene the reference frame's colour, kept below, is still exact.
-        ref_gb = None
-        if not is_reference and self.renderer.scene.is_dynamic:
-            ref_gb = self.renderer.gbuffer(self.reference_camera, t, target=self.reference_gbuffer)
+        # The reference view is rendered again where the scene moved since it was last rendered (the animated
+        # objects and their shadows, §3.5.2: to find what changed, and for its current colour); elsewhere, and in a
+        # static scene everywhere, what the reference frame rendered is still exact.
+        ref_gb, region = None, (0, 0, 0, 0)
+        if not is_reference:
+            region = self.renderer.moving_region(self.reference_camera, (self._reference_time, t))
+            if region[2] and region[3]:
+                ref_gb = self.renderer.gbuffer(self.reference_camera, t, target=self.reference_gbuffer,
+                                               region=region)
+                self._reference_time = t
         if is_reference and self.far_field is not None:
             self.far_field.render(camera.pose.position, t, camera.frustum.near, camera.frustum.far)
         ctx.finish()
@@ -154,8 +160,9 @@ class QuasarServer(MethodServer):
             self.reference_camera = camera
             self.reference_depth = gbs[0].read_depth()
             self.reference_ids = gbs[0].read_object_id()
-            if not self.renderer.scene.is_dynamic:
-                ctx.copy_framebuffer(self.reference_gbuffer.color_fbo, gbs[0].color_fbo)
+            # This view's G-buffer becomes the reference view's (later frames re-render only what moves in it).
+            self.reference_gbuffer, self.layer_renderer.visible = gbs[0], self.reference_gbuffer
+            self._reference_time = t
             self.reference_id = self.frame_id
             self.frames_since_reference = 1  # frames sent since, and including, the reference
             self._force_reference = False
@@ -163,18 +170,22 @@ class QuasarServer(MethodServer):
             ref_cam = self.reference_camera
             updated = QuadSet.empty()
             if ref_gb is not None:
-                # Geometry that changed in the reference view since it was cached (§3.5.2).
-                depth_now, ids_now = ref_gb.read_depth(), ref_gb.read_object_id()
+                # Geometry that changed in the reference view since it was cached (§3.5.2), within the region.
+                x, y, w, h = region
+                rows, cols = slice(y, y + h), slice(x, x + w)
+                depth_now, ids_now = ref_gb.read_depth(region), ref_gb.read_object_id(region)
+                depth_ref, ids_ref = self.reference_depth[rows, cols], self.reference_ids[rows, cols]
                 with np.errstate(invalid="ignore"):
-                    changed = (ids_now != self.reference_ids) | ~(
-                        np.abs(depth_now - self.reference_depth)
-                        <= s.change_threshold * np.minimum(depth_now, self.reference_depth))
-                changed &= ~(np.isinf(depth_now) & np.isinf(self.reference_depth))
-                if changed.any():
+                    changed_here = (ids_now != ids_ref) | ~(
+                        np.abs(depth_now - depth_ref) <= s.change_threshold * np.minimum(depth_now, depth_ref))
+                changed_here &= ~(np.isinf(depth_now) & np.isinf(depth_ref))
+                if changed_here.any():
+                    changed = np.zeros_like(self.reference_ids, bool)
+                    changed[rows, cols] = changed_here
                     updated = quads(ref_gb, ref_cam, self.visible_params, mask=changed)
+                    depth_ref[changed_here] = depth_now[changed_here]
+                    ids_ref[changed_here] = ids_now[changed_here]
                 self.cache.update(updated)
-                self.reference_depth[changed] = depth_now[changed]
-                self.reference_ids[changed] = ids_now[changed]
             # Geometry revealed at the new pose: not covered by the cached mesh (§3.5.1), 1-pixel expansion.
             self.mesh.build([MeshLayer(self.cache.quads, ref_cam, L.reference)], (L.width, L.height))
             self.mesh_view.render(self.mesh, camera, self.atlas.texture)
@@ -207,7 +218,7 @@ class QuasarServer(MethodServer):
 
         t0 = time.perf_counter()
         self.atlas.clear()
-        self.atlas.draw((gbs[0] if is_reference else ref_gb or self.reference_gbuffer).color, L.reference)
+        self.atlas.draw(self.reference_gbuffer.color, L.reference)
         if not is_reference:
             self.atlas.draw(gbs[0].color, L.current)
         for gb, rect in zip(gbs[1:], L.hidden):

@@ -3,25 +3,31 @@ truth (FLIP, SSIM, PSNR) — `quadcast eval`. Also scores a live client's record
 
 Outputs in DIR: summary.json (means and figures; everything but the wall-clock `server_ms`/`client_ms` is
 identical for the same seed), frames.csv (one row per scored frame), report.html (plots and worst frames).
+
+Besides FLIP/SSIM/PSNR every scored frame has its *holes* (`quadcast.client.method.Coverage`): the fraction of the
+display where the client showed no content of its own -- nothing drawn, or only smeared edge pixels (``holes`` =
+``holes_empty`` + ``holes_smeared``; ``holes_interior`` is the part not touching the display's border: cracks and
+disocclusions rather than what lies beyond the rendered frame); the summary has their mean/max and
+``black_frames``, the display frames shown before the first payload plus the shown frames with no pixel drawn.
 """
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.renderer import DeferredRenderer
-from quadcast.render.scene import load_scene
+from quadcast.render.scene import load_scene, scene_trace
 from quadcast.methods import make_client, make_server
 from quadcast.protocol.frame import residual_to_reference_bytes
 from quadcast.protocol.methods import MethodConfig
+from quadcast.protocol.prediction import DEFAULT_PREDICTOR, PredictorSettings
 from quadcast.sim.metrics import compare
 from quadcast.sim.replay import DisplayedFrame, ReplayConfig, replay
 from quadcast.sim.report import FrameImages, format_figure, write_frames_csv, write_report_html, write_summary_json
-from quadcast.render.traces import resolve_trace
 
 WALLCLOCK_KEYS = ("server_ms", "client_ms")
 WORST_FRAMES = 3
@@ -31,6 +37,8 @@ WORST_FRAMES = 3
 class EvalSpec:
     scene: str = "builtin:courtyard"
     trace: str = "builtin:walk"
+    anchor: str | None = None      # re-anchor the trace into the scene: "spawn" or "x,y,z[,yaw_deg]"
+    start: float = 0.0             # seconds into the trace where the replay starts
     method: str = "quasar"
     latency_ms: float = 20.0
     jitter_ms: float = 10.0
@@ -44,7 +52,7 @@ class EvalSpec:
     stereo: bool = False
     seed: int = 0
     predict: bool = True
-    smooth: bool | None = None     # None: Savitzky-Golay smoothing at >= 50 ms, as QUASAR
+    predictor: PredictorSettings | None = None    # None: quadcast.protocol.prediction.DEFAULT_PREDICTOR
     crf: float = 23.0
     reference_every: int = 5
 
@@ -73,6 +81,12 @@ class _Scorer:
         self.worst: list[tuple[float, FrameImages]] = []
         self.stereo = stereo
         self.stereo_rows: list[dict] = []
+        self.uncovered_frames = 0      # frames shown after a payload with no pixel drawn
+
+    def count_coverage(self, frame_id: int, holes: float | None) -> None:
+        """A shown frame's holes, for `black_frames` (frames before any payload are counted by the driver)."""
+        if frame_id >= 0 and holes is not None and holes >= 1.0:
+            self.uncovered_frames += 1
 
     @property
     def scored(self) -> list[dict]:
@@ -82,7 +96,9 @@ class _Scorer:
     def worst_images(self) -> list[FrameImages]:
         return [f for _, f in self.worst]
 
-    def score(self, index: int, t: float, pose: Pose, image: np.ndarray, extra: dict) -> None:
+    def score(self, index: int, t: float, pose: Pose, image: np.ndarray, extra: dict,
+              holes: np.ndarray | None = None) -> None:
+        """Score one shown frame; `holes` is its (H, W) hole mask when the client reported one."""
         if extra.get("frame_id", 0) < 0:
             return
         camera = Camera.perspective(pose, self.width, self.height, self.fovy)
@@ -90,8 +106,12 @@ class _Scorer:
         s = compare(gt, image)
         rec = {"frame": index, "t": t, "flip": s.flip, "ssim": s.ssim, "psnr": s.psnr, **extra}
         self.records.append(rec)
-        self.worst.append((s.flip, FrameImages(gt, image, s.flip_map, f"frame {index} (t={t:.2f} s) "
-                                                                       f"FLIP {s.flip:.3f}")))
+        label = f"frame {index} (t={t:.2f} s) FLIP {s.flip:.3f}"
+        if extra.get("holes") is not None:
+            label += f", holes {100 * extra['holes']:.2f}%"
+        if extra.get("pose_error_deg") is not None:
+            label += f", pose error {extra['pose_error_deg']:.1f}° {extra['pose_error_cm']:.1f} cm"
+        self.worst.append((s.flip, FrameImages(gt, image, s.flip_map, label, holes)))
         self.worst.sort(key=lambda x: -x[0])
         del self.worst[WORST_FRAMES:]
         if self.stereo is not None:
@@ -103,11 +123,12 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     from tqdm import tqdm
 
     scene = load_scene(spec.scene)
-    trace = resolve_trace(spec.trace)
+    trace = scene_trace(spec.trace, scene, spec.anchor, spec.start)
     needed = spec.frames / 60.0
     if needed > trace.duration + 1e-9:
-        raise ValueError(f"trace {spec.trace!r} lasts {trace.duration:.1f} s; {spec.frames} frames at 60 Hz need "
-                         f"{needed:.1f} s")
+        after = f" after --start {spec.start:g} s" if spec.start else ""
+        raise ValueError(f"trace {spec.trace!r} lasts {trace.duration:.1f} s{after}; {spec.frames} frames at 60 Hz "
+                         f"need {needed:.1f} s")
     if spec.every < 1 or spec.frames < 1:
         raise ValueError("--frames and --every must be >= 1")
     renderer = DeferredRenderer(scene)
@@ -115,9 +136,9 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
                        reference_every=spec.reference_every, crf=spec.crf)
     server = make_server(spec.method, renderer, cfg)
     client = make_client(spec.method, cfg, renderer.ctx)
-    smooth = spec.smooth if spec.smooth is not None else spec.latency_ms >= 50
+    predictor = spec.predictor or DEFAULT_PREDICTOR
     rc = ReplayConfig(latency_ms=spec.latency_ms, jitter_ms=spec.jitter_ms, rate_mbit=spec.rate_mbit,
-                      loss=spec.loss, predict=spec.predict, smooth=smooth, seed=spec.seed)
+                      loss=spec.loss, predict=spec.predict, predictor=predictor, seed=spec.seed)
     stereo = _stereo_scorer(renderer, spec, client) if spec.stereo else None
     scorer = _Scorer(renderer, spec.width, spec.height, cfg.fovy_deg, stereo)
     bar = tqdm(total=spec.frames, desc=f"eval {spec.method}", unit="frame", disable=quiet, leave=False)
@@ -128,8 +149,11 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
         if f.render_pose is not None:
             extra["pose_error_cm"] = f.render_pose.distance_to(f.pose) * 100
             extra["pose_error_deg"] = f.render_pose.angle_to_deg(f.pose)
+        if f.coverage is not None:
+            extra.update(f.coverage.figures())
         client_ms.append(f.client_ms)
-        scorer.score(f.index, f.t, f.pose, f.image, extra)
+        scorer.count_coverage(f.frame_id, extra.get("holes"))
+        scorer.score(f.index, f.t, f.pose, f.image, extra, f.coverage.hole_mask if f.coverage is not None else None)
 
     def show(i: int) -> bool:
         bar.update(1)
@@ -143,12 +167,16 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     c = totals.client
     run = {"latency_ms": spec.latency_ms, "jitter_ms": spec.jitter_ms, "rate_mbit": spec.rate_mbit,
            "loss": spec.loss, "viewcell_m": spec.viewcell_m, "display_frames": spec.frames, "every": spec.every,
-           "seed": spec.seed, "predict": spec.predict, "smooth": smooth, "mbps": rate(totals.bytes_total),
+           "seed": spec.seed, "predict": spec.predict,
+           "predictor": str(predictor) if spec.predict else None, "mbps": rate(totals.bytes_total),
            "mbps_video": rate(totals.bytes_video), "mbps_geometry": rate(totals.bytes_geometry),
            "server_frames": totals.frames_sent, "frames_applied": c.frames_applied,
            "frames_lost": totals.frames_lost, "frames_rejected": c.frames_rejected,
            "frames_skipped": c.frames_skipped, "reference_requests": c.reference_requests,
+           "frames_before_payload": totals.frames_before_payload,
            "server_ms": _mean_stages([stats.ms for _, _, stats in totals.payloads])}
+    if spec.anchor is not None or spec.start:
+        run.update(anchor=spec.anchor, start_s=spec.start)
     if spec.method == "quasar":
         run["residual_to_reference_bytes"] = residual_to_reference_bytes((kind, n) for kind, n, _ in totals.payloads)
     summary = build_summary(spec.method, spec.scene, spec.trace, (spec.width, spec.height), scorer, client_ms, run)
@@ -171,6 +199,11 @@ def build_summary(method: str, scene: str, trace: str, size: tuple[int, int], sc
         "frames": len(scored), "flip": mean("flip"), "ssim": mean("ssim"), "psnr": mean("psnr"),
         "pose_error_cm": _stats(r.get("pose_error_cm") for r in scored),
         "pose_error_deg": _stats(r.get("pose_error_deg") for r in scored),
+        "holes": _stats(r.get("holes") for r in scored),
+        "holes_empty": _stats(r.get("holes_empty") for r in scored)["mean"],
+        "holes_smeared": _stats(r.get("holes_smeared") for r in scored)["mean"],
+        "holes_interior": _stats(r.get("holes_interior") for r in scored)["mean"],
+        "black_frames": (run.get("frames_before_payload") or 0) + scorer.uncovered_frames,
         "client_ms": _mean_stages(client_ms),
     }
     stereo_rows = [r for r in scorer.stereo_rows if r is not None]
@@ -244,7 +277,7 @@ def run_sweep(base: EvalSpec, out: Path, methods=SWEEP_METHODS, latencies=SWEEP_
                 runs.append((method, lat, jit, vc))
     rows = []
     for method, lat, jit, vc in tqdm(runs, desc="sweep", unit="run", disable=quiet):
-        spec = EvalSpec(**{**asdict(base), "method": method, "latency_ms": lat, "jitter_ms": jit, "viewcell_m": vc})
+        spec = replace(base, method=method, latency_ms=lat, jitter_ms=jit, viewcell_m=vc)
         name = f"{method}_{lat:g}ms_{vc:g}m"
         s = run_eval(spec, out / name, quiet=True)
         rows.append({"method": method, "latency_ms": f"{lat:g}±{jit:g}",
@@ -268,6 +301,9 @@ def evaluate_recording(directory: str | Path) -> dict:
     ``pose_error_cm``/``pose_error_deg``, ``client_ms``, and with stereo a ``stereo`` entry: ``right`` image path
     of the synthesized eye, that eye's ``position``/``quat`` and the frame's ``cost_ratio``) and an optional
     ``summary`` of run-wide figures (Mbps on the socket, frame counts, ...), which is merged into the summary.
+    Frames may carry the client's ``holes``/``holes_empty``/``holes_smeared`` and the summary
+    ``frames_before_payload`` (display frames shown before the first payload), which make ``holes`` and
+    ``black_frames`` as in ``quadcast eval``.
     Writes summary.json (the fields of ``quadcast eval`` plus ``live``, and ``stereo`` as ``quadcast eval
     --stereo`` has it when the frames have stereo entries), frames.csv and report.html to the directory and
     returns the summary.
@@ -292,7 +328,9 @@ def evaluate_recording(directory: str | Path) -> dict:
         image = load(f["image"])
         pose = Pose(f["position"], f["quat"])
         extra = {k: f[k] for k in ("frame_id", "age_ms", "pose_error_cm", "pose_error_deg", "bytes_video",
-                                   "bytes_geometry") if k in f}
+                                   "bytes_geometry", "holes", "holes_empty", "holes_smeared", "holes_interior")
+                 if k in f}
+        scorer.count_coverage(extra["frame_id"] if "frame_id" in extra else 0, extra.get("holes"))
         scorer.score(f["index"], f["t"], pose, image, extra)
         client_ms.append(f.get("client_ms", {}))
         eye = f.get("stereo")
@@ -322,4 +360,9 @@ def format_summary(s: dict) -> str:
     return (f"{s['method']:>11s} {s.get('latency_ms', 0):>4g}±{s.get('jitter_ms', 0):<3g}ms vc {s['viewcell_m']:g} m: "
             f"{f(s['mbps'], '8.2f')} Mbps (video {f(s.get('mbps_video'), '.2f')}, geometry "
             f"{f(s.get('mbps_geometry'), '.2f')})  FLIP {f(s['flip'], '.4f')}  SSIM {f(s['ssim'], '.4f')}  "
-            f"PSNR {f(s['psnr'], '.2f')} dB")
+            f"PSNR {f(s['psnr'], '.2f')} dB  holes {f(_pct((s.get('holes') or {}).get('mean')), '.2f')}% "
+            f"(max {f(_pct((s.get('holes') or {}).get('max')), '.1f')}%), {s.get('black_frames', 0)} black frames")
+
+
+def _pct(fraction: float | None) -> float | None:
+    return None if fraction is None else 100 * fraction

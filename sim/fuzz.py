@@ -166,9 +166,11 @@ def _check_pose_path(data: bytes, chunk: int) -> bool:
     from quadcast.protocol.errors import ProtocolError
     from quadcast.protocol.frame import FramePayload, FrameType, Method, decode_frame_payload, encode_frame_payload
     from quadcast.protocol.messages import MessageType, decode_message_body
+    from quadcast.protocol.prediction import UNCLAMPED_ACCELERATION
     from quadcast.protocol.session import ServerSession, ServerSessionConfig
     from quadcast.render.camera import Pose
-    core = ServerSession(ServerSessionConfig(smooth=bool(chunk % 2), idle_timeout_s=20.0))
+    core = ServerSession(ServerSessionConfig(predictor=UNCLAMPED_ACCELERATION if chunk % 2 else None,
+                                             idle_timeout_s=20.0))
     core.opened(0.0)
     now, accepted = 0.0, 0
     for i in range(0, len(data) - 71, 72):

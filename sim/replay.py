@@ -16,11 +16,12 @@ from typing import Callable
 
 import numpy as np
 
-from quadcast.client.method import MethodClient
+from quadcast.client.method import Coverage, MethodClient
 from quadcast.codec.decoder import VideoError
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload
 from quadcast.protocol.messages import PoseUpdate, ReferenceRequest, encode_message
+from quadcast.protocol.prediction import PredictorSettings
 from quadcast.protocol.session import (ClientSession, EncodeFrame, RequestReference, ServerSession,
                                        ServerSessionConfig)
 from quadcast.render.camera import Pose
@@ -40,14 +41,14 @@ class ReplayConfig:
     client_hz: float = 60.0
     server_hz: float = 30.0
     predict: bool = True
-    smooth: bool = False
+    predictor: PredictorSettings | None = None     # None: the default predictor
     seed: int = 0
     server_delay_ms: float = 0.0   # virtual time the server spends per frame
     reference_timeout_s: float = 1.5
 
     def server_session(self) -> ServerSessionConfig:
         """The server session of a replay: one shared clock, the link's nominal latency as the downlink estimate."""
-        return ServerSessionConfig(predict=self.predict, smooth=self.smooth, downlink_s=self.latency_ms / 1e3,
+        return ServerSessionConfig(predict=self.predict, predictor=self.predictor, downlink_s=self.latency_ms / 1e3,
                                    encode_s=self.server_delay_ms / 1e3, clock_offset_s=0.0)
 
 
@@ -63,6 +64,7 @@ class DisplayedFrame:
     render_pose: Pose | None       # the pose that frame was rendered for
     age_ms: float                  # display time - the frame's render time
     client_ms: dict = field(default_factory=dict)
+    coverage: Coverage | None = None   # how the client's render covered the display (holes)
 
 
 @dataclass
@@ -73,6 +75,7 @@ class ReplayTotals:
     bytes_total: int = 0
     frames_sent: int = 0
     frames_lost: int = 0                  # lost on the downlink
+    frames_before_payload: int = 0        # display ticks before the first payload was applied (shown black)
     payloads: list = field(default_factory=list)    # per server frame sent: (frame type, bytes, stats)
     client: object = None                 # the client session's counters
 
@@ -158,6 +161,8 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
                 applied, reason = False, str(exc)
             request(client_session.frame_processed(now, applied, client.needs_reference, reason), now)
         request(client_session.tick(now), now)
+        if newest is None:
+            totals.frames_before_payload += 1
         if show is not None and not show(i):
             continue
         p, q = trace.pose_at(t0 + now)
@@ -167,7 +172,7 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
         frame = DisplayedFrame(
             i, now, pose, image, newest.frame_id if newest else -1,
             Pose(newest.position, newest.quat) if newest else None,
-            (now - newest.t) * 1e3 if newest else float("nan"), dict(stats.get("ms", {})))
+            (now - newest.t) * 1e3 if newest else float("nan"), dict(stats.get("ms", {})), client.coverage())
         if on_display:
             on_display(frame)
     totals.duration_s = display_frames * display_period

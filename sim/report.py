@@ -13,6 +13,10 @@ them when present (see :data:`CORE_COLUMNS`):
 ``bytes_geometry``     encoded geometry (quad blob) bytes
 ``flip`` ``ssim``      image quality vs ground truth (:mod:`quadcast.sim.metrics`)
 ``psnr``               dB
+``holes``              fraction of the display the client left without content
+                       (nothing drawn or only smeared edge pixels), 0..1;
+                       ``holes_empty`` / ``holes_smeared`` split it;
+                       ``holes_interior``: the part not touching the border
 ``pose_error_cm``      distance between rendered and displayed pose, cm
 ``pose_error_deg``     angle between rendered and displayed pose, degrees
 ``latency_ms``         motion-to-photon (pose sent -> frame displayed), ms
@@ -78,6 +82,7 @@ CORE_COLUMNS = (
     "flip",
     "ssim",
     "psnr",
+    "holes",
     "pose_error_cm",
     "pose_error_deg",
     "latency_ms",
@@ -108,13 +113,16 @@ class FrameImages:
     ``gt`` and ``displayed`` are sRGB uint8 ``(H, W, 3)``; ``flip_map`` is the
     FLIP error, float ``(H, W)`` in ``[0, 1]`` (shown with the magma colour
     map) or an already coloured uint8 ``(H, W, 3)`` image.  ``label`` is the
-    caption (e.g. ``"frame 42, t = 1.40 s, FLIP 0.21"``).
+    caption (e.g. ``"frame 42, t = 1.40 s, FLIP 0.21"``).  ``holes``, when
+    given, is the client's (H, W) bool hole mask, shown as a fourth image
+    (the displayed frame with its holes in magenta).
     """
 
     gt: np.ndarray
     displayed: np.ndarray
     flip_map: np.ndarray
     label: str = ""
+    holes: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- values
@@ -343,6 +351,21 @@ def _report_plots(flat: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
     x, xlabel = _time_axis(flat)
     plots = []
 
+    if _has(flat, "holes"):
+        fig = _figure(8.0, 2.4)
+        ax = fig.add_subplot()
+        ax.plot(x, 100 * _numeric(flat, "holes"), color="tab:red", lw=1.2, marker=".", ms=3, label="holes")
+        for key, color, label in (("holes_smeared", "tab:orange", "of which smeared edge pixels"),
+                                  ("holes_interior", "tab:purple", "of which inside the view (cracks)")):
+            if _has(flat, key):
+                ax.plot(x, 100 * _numeric(flat, key), color=color, lw=1.0, label=label)
+        ax.legend(loc="upper right", fontsize=8)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("% of pixels")
+        ax.set_title("Holes: pixels shown without content")
+        ax.grid(alpha=0.3)
+        plots.append(("Holes over time", _figure_data_uri(fig)))
+
     if _has(flat, "mbps"):
         fig = _figure()
         ax = fig.add_subplot()
@@ -435,9 +458,13 @@ def _table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
 def _as_frame_images(item: Any, i: int) -> FrameImages:
     if isinstance(item, FrameImages):
         return item
-    if isinstance(item, (tuple, list)) and len(item) in (3, 4):
+    if isinstance(item, (tuple, list)) and len(item) in (3, 4, 5):
         return FrameImages(*item)
-    raise TypeError(f"worst_frames[{i}] must be a FrameImages or a (gt, displayed, flip_map[, label]) tuple, got {type(item).__name__}")
+    raise TypeError(f"worst_frames[{i}] must be a FrameImages or a (gt, displayed, flip_map[, label[, holes]]) tuple, got {type(item).__name__}")
+
+
+HOLE_COLOR = np.array([255, 0, 255], np.uint8)
+"""Holes in the report's strips: magenta."""
 
 
 def _strip(frame: FrameImages, i: int) -> str:
@@ -449,6 +476,13 @@ def _strip(frame: FrameImages, i: int) -> str:
             f"worst_frames[{i}]: gt {gt.shape}, displayed {shown.shape} and flip_map {fm.shape} must share (H, W)"
         )
     parts = [(gt, "ground truth"), (shown, "displayed"), (flip_rgb, "FLIP error")]
+    if frame.holes is not None:
+        holes = np.asarray(frame.holes, bool)
+        if holes.shape != shown.shape[:2]:
+            raise ValueError(f"worst_frames[{i}]: holes {holes.shape} must be the displayed frame's (H, W)")
+        marked = np.array(shown, np.uint8, copy=True)
+        marked[holes] = HOLE_COLOR
+        parts.append((marked, f"holes (magenta, {100 * holes.mean():.2f}%)"))
     figs = "".join(
         f'<figure><img alt="{name}" src="{_png_data_uri(img, f"worst_frames[{i}] {name}")}">'
         f"<figcaption>{name}</figcaption></figure>"

@@ -1,9 +1,11 @@
 """Replay in virtual time and the evaluation outputs (QUASAR §4.1.3)."""
 import csv
 import json
+import re
 
 import pytest
 
+from quadcast.render.traces import TraceError, resolve_trace
 from quadcast.sim.evaluate import EvalSpec, WALLCLOCK_KEYS, run_eval, run_sweep, strip_wallclock
 
 TINY = dict(scene="builtin:courtyard", trace="builtin:walk", width=160, height=96, frames=12, every=3)
@@ -69,3 +71,43 @@ def test_sweep_writes_a_comparison_table(tmp_path):
     table = (tmp_path / "table.md").read_text()
     assert "| atw" in table and "| meshwarp" in table
     assert (tmp_path / "quality_vs_rate.png").stat().st_size > 1000
+
+
+def test_holes_and_black_frames_and_worst_strips_of_scored_frames_only(tmp_path):
+    # 50 ms each way: the first frames are shown before any payload (black), and not scored.
+    spec = EvalSpec(method="quasar", latency_ms=50, jitter_ms=0, **{**TINY, "every": 1, "frames": 14})
+    s = run_eval(spec, tmp_path)
+    assert s["frames_before_payload"] >= 5 and s["black_frames"] >= s["frames_before_payload"]
+    assert 0 < s["residual_to_reference_bytes"] < 1
+    assert s["frames"] == spec.frames - s["frames_before_payload"]
+    assert set(s["holes"]) == {"mean", "std", "max"} and 0.0 <= s["holes"]["mean"] <= s["holes"]["max"] <= 1.0
+    assert s["holes_empty"] + s["holes_smeared"] == pytest.approx(s["holes"]["mean"])
+    assert 0 <= s["holes_interior"] <= s["holes"]["mean"]
+    rows = list(csv.DictReader((tmp_path / "frames.csv").open()))
+    assert all(int(r["frame_id"]) >= 0 and 0.0 <= float(r["holes"]) <= 1.0 for r in rows)
+    html = (tmp_path / "report.html").read_text()
+    assert "Holes over time" in html and "holes (magenta" in html
+    first_scored = min(int(r["frame"]) for r in rows)
+    captions = re.findall(r"<h3>frame (\d+) \(t=", html)
+    assert len(captions) == 3 and all(int(c) >= first_scored for c in captions)
+
+
+def test_atw_holes_are_its_smeared_edges():
+    # builtin:orbit turns 36 deg/s: at 50 ms each way ATW shows some smeared edge pixels, never an empty one.
+    s = run_eval(EvalSpec(method="atw", latency_ms=50, jitter_ms=0, **{**TINY, "trace": "builtin:orbit"}))
+    assert s["holes"]["mean"] > 0 and s["holes_smeared"] == pytest.approx(s["holes"]["mean"]) and \
+        s["holes_empty"] == 0
+
+
+def test_eval_replays_a_trace_anchored_at_the_spawn_point(tmp_path):
+    trace = tmp_path / "t.txt"
+    resolve_trace("builtin:walk").window(0.0, 2.0).anchored([100.0, 5.0, 100.0], 0.0).save(trace)  # far away
+    spec = EvalSpec(method="atw", **{**TINY, "trace": str(trace)}, anchor="spawn", start=0.5)
+    s = run_eval(spec)
+    assert s["anchor"] == "spawn" and s["start_s"] == 0.5
+    far = run_eval(EvalSpec(method="atw", **{**TINY, "trace": str(trace)}, start=0.5))   # not anchored
+    assert far["anchor"] is None and far["flip"] != s["flip"]
+    with pytest.raises(TraceError, match="anchor"):
+        run_eval(EvalSpec(method="atw", **TINY, anchor="1,2"))
+    with pytest.raises(ValueError, match="after --start"):
+        run_eval(EvalSpec(method="atw", **{**TINY, "trace": str(trace)}, start=1.9))

@@ -165,9 +165,10 @@ def test_core_decisions_stay_renderable_whatever_the_accepted_poses():
     pose = st.tuples(st.floats(-1e10, 1e10), st.lists(coord, min_size=3, max_size=3), quat)
 
     @settings(max_examples=150, deadline=None)
-    @given(poses=st.lists(pose, min_size=1, max_size=12), smooth=st.booleans())
-    def run(poses, smooth):
-        core = ServerSession(ServerSessionConfig(smooth=smooth))
+    @given(poses=st.lists(pose, min_size=1, max_size=12), unclamped=st.booleans())
+    def run(poses, unclamped):
+        from quadcast.protocol.prediction import UNCLAMPED_ACCELERATION
+        core = ServerSession(ServerSessionConfig(predictor=UNCLAMPED_ACCELERATION if unclamped else None))
         now = 0.0
         for t, p, q in poses:
             try:

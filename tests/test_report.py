@@ -1,6 +1,7 @@
 """Eval report writers: per-frame CSV, deterministic summary JSON, self-contained HTML, sweep table and plot."""
 import base64
 import csv
+import io
 import json
 import re
 
@@ -217,3 +218,20 @@ def test_round_float():
     assert round_float(123456789.0) == 123457000.0
     assert round_float(0.0) == 0.0
     assert round_float(float("nan")) is None and round_float(float("-inf")) is None
+
+
+def test_html_report_plots_holes_and_marks_them_in_the_strips(tmp_path):
+    records = [{**r, "holes": 0.01 * i, "holes_smeared": 0.005 * i} for i, r in enumerate(_records())]
+    gt, shown, fmap = _worst()[1]
+    holes = np.zeros(shown.shape[:2], bool)
+    holes[:, :8] = True
+    frame = FrameImages(gt, shown, fmap[:, :, 0], "frame 3", holes)
+    text = write_report_html(tmp_path / "report.html", _summary(), records, [frame]).read_text()
+    assert "Holes over time" in text and "holes (magenta, 25.00%)" in text
+    marked = _embedded_pngs(text)[-1]
+    from PIL import Image
+    image = np.asarray(Image.open(io.BytesIO(marked)))
+    assert (image[:, :8] == [255, 0, 255]).all() and (image[:, 8:] == shown[:, 8:]).all()
+    with pytest.raises(ValueError, match="holes"):
+        write_report_html(tmp_path / "bad.html", _summary(), records, [FrameImages(gt, shown, fmap[:, :, 0], "x",
+                                                                                   holes[:4])])

@@ -82,3 +82,56 @@ def test_gltf_textured_mesh_round_trip(tmp_path):
     mesh = scene.objects[0].mesh
     assert mesh.uvs is not None and mesh.material.texture is not None
     assert mesh.material.texture[..., 0].mean() > 150
+
+
+# ------------------------------------------------------------------------------------------ spawn points
+
+def test_spawn_points_and_traces_placed_there(tmp_path, courtyard):
+    from quadcast.render.scene import Spawn, default_spawn, place_trace, scene_trace
+    from quadcast.render.traces import TraceError, builtin_trace, heading_deg
+
+    # The courtyard's spawn is on open ground at eye height, clear of the fountain in the middle.
+    x, y, z = courtyard.spawn.position
+    assert y == pytest.approx(1.6) and np.hypot(x, z) > 3.0 and max(abs(x), abs(z)) < 8.0 - 1.0
+    walk = builtin_trace("walk")
+    placed = place_trace(walk, "spawn", courtyard)
+    np.testing.assert_allclose(placed.positions[0], courtyard.spawn.position, atol=1e-9)
+    assert heading_deg(placed.rotations[0]) == pytest.approx(courtyard.spawn.yaw_deg, abs=1e-3)
+    assert place_trace(walk, None, courtyard) is walk
+    moved = place_trace(walk, "1,2,3", start_s=1.0)
+    np.testing.assert_allclose(moved.pose_at(walk.times[0] + 1.0)[0], [1, 2, 3], atol=1e-9)
+    with pytest.raises(TraceError, match="needs a scene"):
+        place_trace(walk, "spawn")
+    # scene_trace: the window from --start, anchored at its first pose.
+    cut = scene_trace("builtin:walk", courtyard, "spawn", start_s=2.0, duration_s=1.0)
+    assert cut.duration == pytest.approx(1.0)
+    np.testing.assert_allclose(cut.positions[0], courtyard.spawn.position, atol=1e-9)
+
+    # A scene file declares one; a lone object gets one in front of it that sees all of it; a large one its middle.
+    (tmp_path / "s.json").write_text(json.dumps({"models": [{"primitive": "box"}],
+                                                 "spawn": {"position": [1, 2, 3], "yaw_deg": 45}}))
+    assert load_scene(tmp_path / "s.json").spawn == Spawn((1.0, 2.0, 3.0), 45.0)
+    (tmp_path / "bad.json").write_text(json.dumps({"models": [{"primitive": "box"}], "spawn": {"position": [1, 2]}}))
+    with pytest.raises(SceneError, match="spawn.position"):
+        load_scene(tmp_path / "bad.json")
+    box = default_spawn(np.array([[-1.0, 0.0, -1.0], [1.0, 2.0, 1.0]]))
+    assert box.position[0] == 0.0 and box.position[1] == pytest.approx(1.6) and box.yaw_deg == 0.0
+    radius = np.sqrt(3.0)
+    assert box.position[2] - 0.0 >= radius / np.sin(np.radians(30)) - 1e-9     # the whole box fits 60°
+    hall = default_spawn(np.array([[-30.0, -1.0, -20.0], [30.0, 10.0, 20.0]]))
+    assert hall.position == pytest.approx((0.0, 0.6, 0.0))
+    # An open space whose pillars reach below the ground: eye height above the ground, not above the bounds.
+    (tmp_path / "open.json").write_text(json.dumps({"models": [
+        {"primitive": "plane", "size": [60, 60]}, {"primitive": "box", "extents": [1, 6, 1], "position": [10, 1, 0]},
+        {"primitive": "box", "extents": [4, 0.5, 4], "position": [0, 8, 0]}]}))       # and a roof above the middle
+    scene = load_scene(tmp_path / "open.json")
+    assert scene.bounds()[0][1] == pytest.approx(-2.0) and scene.floor_height(0.0, 0.0) == pytest.approx(0.0)
+    assert scene.spawn.position == pytest.approx((0.0, 1.6, 0.0)) and scene.floor_height(100.0, 0.0) is None
+
+
+def test_monastery_spawn_is_its_main_courtyard():
+    pytest.importorskip("pybullet_data")
+    from quadcast.render.scene import monastery_scene
+    scene = monastery_scene()
+    x, y, z = scene.spawn.position
+    assert (x, z) == (-3.7, 1.5) and y == pytest.approx(scene.bounds()[0][1] + 2.0)

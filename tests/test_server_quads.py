@@ -115,3 +115,28 @@ def test_encode_command_writes_decodable_video_and_stats(tmp_path):
     with av.open(str(out / "atlas.h264"), format="h264") as container:
         assert sum(1 for _ in container.decode(video=0)) == 6
     assert quadcast.main(["-q", "encode", "--size", "191x108", "--out", str(out)]) == 2
+
+
+def test_reference_view_rerendered_where_the_scene_moves_equals_a_full_render(ctx):
+    """Residual frames re-render the reference view only within the animated objects' and their shadows' screen
+    region; what the server keeps is still exactly the full render at the frame's time."""
+    from quadcast.render.renderer import DeferredRenderer, GBuffer
+    from quadcast.render.scene import load_scene
+    from quadcast.render.traces import resolve_trace
+    from quadcast.server.quasar import QuasarServer, QuasarSettings
+    renderer = DeferredRenderer(load_scene("builtin:courtyard"), ctx)
+    server = QuasarServer(renderer, QuasarSettings(width=160, height=96, reference_every=4))
+    check = GBuffer(ctx, 160, 96)
+    trace = resolve_trace("builtin:walk")
+    regions = []
+    for k in range(8):
+        t = 0.7 * k                                   # scene time runs fast: the objects move a lot
+        p, q = trace.pose_at(trace.times[0] + k / 30)
+        before = server.reference_camera
+        server.encode(Pose(p, q), t)
+        if before is not None and server.reference_camera is before:
+            regions.append(renderer.moving_region(before, (0.0, t)))
+        truth = renderer.gbuffer(server.reference_camera, t, target=check).read_color()
+        assert np.array_equal(server.reference_gbuffer.read_color(), truth), f"frame {k}"
+    assert any(0 < w * h < 160 * 96 for _, _, w, h in regions), regions     # only part of the view re-rendered
+    server.close()

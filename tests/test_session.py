@@ -50,7 +50,7 @@ def test_frame_queue_drops_stale_frames_but_never_a_dependency():
 # -------------------------------------------------------------------------------------------- server
 
 def test_server_encodes_each_pose_and_predicts_the_display_time():
-    s = ServerSession(ServerSessionConfig(downlink_s=0.05, clock_offset_s=0.0, smooth=False))
+    s = ServerSession(ServerSessionConfig(downlink_s=0.05, clock_offset_s=0.0))
     d = s.pose_received(0.0, 0.0, *_pose(0.0))
     assert isinstance(d, EncodeFrame) and d.display_t == pytest.approx(0.05) and not d.reference
     assert s.pose_received(0.01, 0.01, *_pose(0.01)) is None          # busy: coalesces
@@ -212,6 +212,10 @@ class _StubClient:
 
     def render(self, pose):
         return np.zeros((2, 2, 3), np.uint8)
+
+    def coverage(self):
+        from quadcast.client.method import Coverage
+        return Coverage.empty(2, 2)
 
 
 def _virtual_time(loop: asyncio.AbstractEventLoop) -> None:

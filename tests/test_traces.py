@@ -2,17 +2,25 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from numpy.testing import assert_allclose
 from scipy.spatial.transform import Rotation
 
 from quadcast.render.traces import (
     BUILTIN_TRACES,
+    SPAWN,
+    Anchor,
     Trace,
     TraceError,
+    builtin_trace,
+    heading_deg,
     load_trace,
+    parse_anchor,
     parse_trace,
     resolve_trace,
 )
@@ -322,3 +330,91 @@ def test_glm_gimbal_flip_at_yaw_90_is_not_a_turn() -> None:
     assert np.degrees(steps).max() < 5.0          # a head turn, not a 180° flip
     # yaw -90: a quarter turn to the right of -Z, i.e. looking down +X, nearly level.
     np.testing.assert_allclose(trace.rotations[1].apply(FORWARD), [1.0, 0.0, 0.0], atol=0.03)
+
+
+# ------------------------------------------------------------------------------- anchoring and windows
+
+def _relative_motion(trace: Trace) -> tuple[np.ndarray, np.ndarray]:
+    """What re-anchoring must keep: distances from the first position and turns from the first rotation."""
+    r = trace.rotations
+    return (np.linalg.norm(trace.positions - trace.positions[0], axis=1),
+            np.degrees((r * r[0].inv()).magnitude()))
+
+
+@pytest.mark.parametrize("yaw", [None, 0.0, -90.0, 90.0, 37.5, 180.0])
+def test_anchored_moves_the_first_pose_and_keeps_the_motion(yaw) -> None:
+    walk = builtin_trace("walk")
+    moved = walk.anchored([3.0, 2.0, -1.0], yaw)
+    assert_allclose(moved.positions[0], [3.0, 2.0, -1.0], atol=1e-12)
+    heading = heading_deg(moved.rotations[0])
+    expected = heading_deg(walk.rotations[0]) if yaw is None else yaw
+    assert abs((heading - expected + 180.0) % 360.0 - 180.0) < 1e-3
+    for a, b in zip(_relative_motion(walk), _relative_motion(moved)):
+        assert_allclose(a, b, atol=1e-6)
+    # The turn is about +Y only: heights move by the same offset, pitch (look up/down) stays.
+    assert_allclose(moved.positions[:, 1] - walk.positions[:, 1], 2.0 - walk.positions[0, 1], atol=1e-12)
+    up = lambda t: t.forward()[:, 1]  # noqa: E731
+    assert_allclose(up(moved), up(walk), atol=1e-9)
+    assert_allclose(moved.times, walk.times)
+
+
+def test_anchored_at_a_later_pose_and_at_gimbal_lock() -> None:
+    # Exactly at the lock, with no roll, the angles keep the reference's roll: no jump, no warning.
+    still = Trace("still", np.array([0.0, 1.0]), np.zeros((2, 3)), np.array([[5.0, 10.0, 0.0], [6.0, 12.0, 0.0]]))
+    locked = still.anchored([0, 0, 0], 90.0)
+    assert_allclose(locked.euler_deg, [[5.0, 90.0, 0.0], [6.0, 92.0, 0.0]], atol=1e-3)
+    walk = builtin_trace("walk")
+    moved = walk.anchored([0.0, 1.0, 0.0], -90.0, at_s=2.0)
+    p, q = moved.pose_at(walk.times[0] + 2.0)
+    assert_allclose(p, [0.0, 1.0, 0.0], atol=1e-9)
+    assert abs(heading_deg(Rotation.from_quat(q)) + 90.0) < 1e-3
+    # Headings near ±90° are the trace format's gimbal lock (pitch and roll then jump, as glm writes them); the
+    # rotations stay exact.
+    expected = Rotation.from_euler("y", -90.0 - heading_deg(Rotation.from_quat(walk.pose_at(walk.times[0] + 2)[1])),
+                                   degrees=True) * walk.rotations
+    assert np.degrees((moved.rotations * expected.inv()).magnitude()).max() < 1e-3
+    # Round trip through the text format keeps it.
+    again = parse_trace(moved.to_text())
+    assert np.degrees((again.rotations * moved.rotations.inv()).magnitude()).max() < 1e-3
+    with pytest.raises(TraceError, match="anchor time"):
+        walk.anchored([0, 0, 0], at_s=walk.duration + 1)
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("spawn", SPAWN), (" 1, 2.5,-3 ", Anchor((1.0, 2.5, -3.0))), ("0,1.6,0,-90", Anchor((0.0, 1.6, 0.0), -90.0))])
+def test_parse_anchor(text, expected) -> None:
+    assert parse_anchor(text) == expected
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("", "spawn"), ("1,2", "3 or 4 numbers"), ("1,2,3,4,5", "3 or 4 numbers"), ("1,b,3", "y is not a number"),
+    ("1,2,3,nan", "yaw_deg is not finite"), ("home", "3 or 4 numbers")])
+def test_bad_anchor_is_named(text, fragment) -> None:
+    with pytest.raises(TraceError, match=fragment):
+        parse_anchor(text)
+
+
+def test_window_cuts_and_checks() -> None:
+    walk = builtin_trace("walk")
+    w = walk.window(2.0, 1.5)
+    assert w.times[0] == pytest.approx(walk.times[0] + 2.0) and w.duration == pytest.approx(1.5)
+    assert walk.window(3.0).times[-1] == walk.times[-1]
+    for start, duration in ((walk.duration, None), (-1.0, 1.0), (walk.duration - 1.0, 2.0), (1.0, 0.0)):
+        with pytest.raises(TraceError, match=rf"{re.escape(walk.name)}"):
+            walk.window(start, duration)
+
+
+def test_fastest_window_finds_the_fast_part() -> None:
+    # 10 s: still, then 2 s of a fast head turn from t = 6, then still again.
+    t = np.arange(601) / 60.0
+    yaw = np.degrees(np.clip(t - 6.0, 0.0, 2.0)) * 1.5
+    slow = Trace("turn", t, np.tile([0.0, 1.6, 0.0], (len(t), 1)), np.stack([0 * t, yaw, 0 * t], axis=1))
+    assert slow.fastest_window(2.0) == pytest.approx(6.0, abs=1 / 60)
+    # Moving counts too: a sideways walk at 3 m/s from t = 1 to 3 outweighs a 30 deg/s turn elsewhere.
+    x = 3.0 * np.clip(t - 1.0, 0.0, 2.0)
+    both = Trace("both", t, np.stack([x, 1.6 + 0 * t, 0 * t], axis=1),
+                 np.stack([0 * t, 30.0 * np.clip(t - 6.0, 0.0, 2.0), 0 * t], axis=1))
+    assert both.fastest_window(2.0) == pytest.approx(1.0, abs=1 / 60)
+    assert both.fastest_window(both.duration) == 0.0
+    with pytest.raises(TraceError, match="shorter"):
+        both.fastest_window(20.0)

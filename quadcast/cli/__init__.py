@@ -1,9 +1,10 @@
 """The `quadcast` command line: one program, one subcommand per job.
 
-    quadcast render   --scene S --trace T --size WxH --frames N [--every K] --out DIR [--depth]
+    quadcast render   --scene S --trace T [--anchor A] [--start S] --size WxH --frames N [--every K] --out DIR [--depth]
     quadcast encode   --scene S --trace T --size WxH --frames N --viewcell R [--every K] --out DIR
-    quadcast predict  --trace T --latency MS --jitter MS [--no-predict] [--smooth] [--seed N]
-    quadcast eval     --scene S --trace T --method M --latency MS --jitter MS --viewcell R --size WxH --out DIR
+    quadcast predict  --trace T [--trace T2] [--start S --duration D] --latency 20,50 --jitter 10,20 [--seeds N]
+    quadcast eval     --scene S --trace T [--anchor A] [--start S] --method M --latency MS --jitter MS --viewcell R
+                      --size WxH --out DIR
     quadcast eval     --sweep --size WxH [--frames N] [--every K] --out DIR
     quadcast bench    server|client|stereo|render|browser [--sizes 960x540,1920x1080] [--scenes builtin:courtyard,monastery]
     quadcast server   --port P [--method quasar] [--transport tcp|webrtc] [--host 127.0.0.1] [--token T]
@@ -12,6 +13,10 @@
     quadcast demo     [--out DIR]
 
 Each subcommand's --help says more. Errors in the user's input print one line naming what was wrong and exit 2.
+
+A trace recorded elsewhere (QUASAR's format) replays in any scene with ``--anchor spawn`` (the scene's spawn
+point) or ``--anchor x,y,z[,yaw_deg]``: its pose at ``--start`` goes there and the rest keeps its motion
+relative to that pose.
 """
 from __future__ import annotations
 
@@ -32,17 +37,18 @@ def _progress(iterable, total=None, desc=None, quiet=False):
 # ------------------------------------------------------------------------------------------------ render
 
 def render_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames: int, every: int, out: Path,
-                 depth: bool = False, fovy: float = 60.0, quiet: bool = False) -> list[Path]:
-    """Render ground-truth frames along a trace: frame i is the trace pose at sample i*every. Returns PNG paths."""
+                 depth: bool = False, fovy: float = 60.0, quiet: bool = False, anchor: str | None = None,
+                 start: float = 0.0) -> list[Path]:
+    """Render ground-truth frames along a trace (re-anchored and cut as `quadcast.render.scene.scene_trace`
+    does): frame i is the trace pose at sample i*every. Returns PNG paths."""
     from PIL import Image
 
     from quadcast.render.camera import Camera, Pose
     from quadcast.render.renderer import DeferredRenderer
-    from quadcast.render.scene import load_scene
-    from quadcast.render.traces import resolve_trace
+    from quadcast.render.scene import load_scene, scene_trace
 
     scene = load_scene(scene_spec)
-    trace = resolve_trace(trace_spec)
+    trace = scene_trace(trace_spec, scene, anchor, start)
     if frames < 1 or every < 1:
         raise ValueError(f"--frames and --every must be >= 1, got {frames} and {every}")
     indices = [i * every for i in range(frames)]
@@ -85,7 +91,7 @@ def contact_sheet(paths: list[Path], out: Path, columns: int = 5, thumb_width: i
 def cmd_render(args) -> int:
     from quadcast.render.camera import parse_size
     paths = render_trace(args.scene, args.trace, parse_size(args.size), args.frames, args.every, Path(args.out),
-                         depth=args.depth, fovy=args.fovy, quiet=args.quiet)
+                         depth=args.depth, fovy=args.fovy, quiet=args.quiet, anchor=args.anchor, start=args.start)
     print(f"wrote {len(paths)} frames and contact_sheet.png to {args.out}")
     return 0
 
@@ -107,13 +113,64 @@ def cmd_encode(args) -> int:
 # ------------------------------------------------------------------------------------------ predict, eval
 
 def cmd_predict(args) -> int:
-    from quadcast.protocol.prediction import prediction_errors
-    from quadcast.render.traces import resolve_trace
-    trace = resolve_trace(args.trace)
-    errors = prediction_errors(trace.times, trace.positions, trace.quats, args.latency, args.jitter,
-                               predict=not args.no_predict, smooth=args.smooth, seed=args.seed)
-    print(json.dumps({k: errors[k] for k in ("position_cm", "rotation_deg")}, indent=1))
+    """Pose-prediction error along each trace at each link latency, without and with prediction (mean over
+    --seeds jitter draws), and the overshoot bound of `quadcast.sim.prediction`."""
+    from quadcast.render.scene import load_scene, scene_trace
+    from quadcast.render.traces import SPAWN
+    from quadcast.sim.prediction import prediction_errors
+    latencies = _float_list(args.latency, "--latency")
+    jitters = _float_list(args.jitter, "--jitter")
+    if len(jitters) == 1:
+        jitters *= len(latencies)
+    if len(jitters) != len(latencies):
+        raise ValueError(f"--jitter: give one value or one per --latency ({len(latencies)}), got {len(jitters)}")
+    if args.seeds < 1:
+        raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
+    scene = load_scene(args.scene) if args.anchor is not None and args.anchor.strip() == SPAWN else None
+    rows = []
+    print(f"{'trace':24s} {'link':>7s} {'horizon':>8s} | {'position cm: none':>17s} {'predicted':>9s} {'ratio':>5s} | "
+          f"{'rotation °: none':>16s} {'predicted':>9s} {'ratio':>5s} | {'max ° none/pred':>15s} | bound")
+    for spec in args.trace or ["builtin:walk"]:
+        trace = scene_trace(spec, scene, args.anchor, args.start, args.duration)
+        for lat, jit in zip(latencies, jitters):
+            runs = {mode: [prediction_errors(trace.times, trace.positions, trace.quats, lat, jit, predict=mode,
+                                             seed=args.seed + k) for k in range(args.seeds)] for mode in (False, True)}
+
+            def mean(mode, part, stat="mean"):
+                return float(np.mean([r[part][stat] for r in runs[mode]]))
+
+            def worst(mode, part):
+                return float(np.max([r[part]["max"] for r in runs[mode]]))
+            row = {"trace": spec, "latency_ms": lat, "jitter_ms": jit, "seeds": args.seeds,
+                   "horizon_ms": mean(True, "horizon_ms"),
+                   "none": {part: {"mean": mean(False, part), "std": mean(False, part, "std"),
+                                    "max": worst(False, part)} for part in ("position_cm", "rotation_deg")},
+                   "predicted": {part: {"mean": mean(True, part), "std": mean(True, part, "std"),
+                                         "max": worst(True, part)} for part in ("position_cm", "rotation_deg")},
+                   "bound_violations": int(sum(r["bound"]["violations"] for r in runs[True])),
+                   "frames": int(sum(r["samples"] for r in runs[True]))}
+            rows.append(row)
+            n, p = row["none"], row["predicted"]
+            print(f"{Path(spec).stem[:24]:24s} {lat:>3g}±{jit:<3g} {row['horizon_ms']:6.1f}ms | "
+                  f"{n['position_cm']['mean']:17.2f} {p['position_cm']['mean']:9.2f} "
+                  f"{p['position_cm']['mean'] / n['position_cm']['mean']:5.2f} | "
+                  f"{n['rotation_deg']['mean']:16.2f} {p['rotation_deg']['mean']:9.2f} "
+                  f"{p['rotation_deg']['mean'] / n['rotation_deg']['mean']:5.2f} | "
+                  f"{n['rotation_deg']['max']:7.1f}/{p['rotation_deg']['max']:<7.1f} | "
+                  f"{row['bound_violations']}/{row['frames']} over", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0
+
+
+def _float_list(text: str, option: str) -> list[float]:
+    try:
+        values = [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(f"{option}: expected numbers separated by commas, got {text!r}") from None
+    if not values or not all(np.isfinite(v) and v >= 0 for v in values):
+        raise ValueError(f"{option}: expected finite numbers >= 0, got {text!r}")
+    return values
 
 
 def _eval_spec(args):
@@ -121,7 +178,8 @@ def _eval_spec(args):
     from quadcast.sim.evaluate import EvalSpec
     from quadcast.sim.link import parse_loss, parse_rate_mbit
     w, h = parse_size(args.size)
-    return EvalSpec(scene=args.scene, trace=args.trace, method=args.method, latency_ms=args.latency,
+    return EvalSpec(scene=args.scene, trace=args.trace, anchor=args.anchor, start=args.start, method=args.method,
+                    latency_ms=args.latency,
                     jitter_ms=args.jitter, rate_mbit=parse_rate_mbit(args.rate) if args.rate else None,
                     loss=parse_loss(args.loss) if args.loss else 0.0, viewcell_m=args.viewcell, width=w, height=h,
                     frames=args.frames, every=args.every, stereo=args.stereo, seed=args.seed,
@@ -151,9 +209,14 @@ def cmd_eval(args) -> int:
 
 def cmd_bench(args) -> int:
     from quadcast.render.camera import parse_size
+    from quadcast.cli import bench
+    if args.what == "quality":
+        return _bench_quality(args)
+    if args.traces:
+        raise ValueError(f"bench {args.what}: trace files are for 'bench quality' only")
     sizes = [parse_size(s) for s in args.sizes.split(",")]
     scenes = args.scenes.split(",")
-    from quadcast.cli import bench
+    args.frames = 10 if args.frames is None else args.frames
     if args.what == "render":
         rows = bench.bench_render(scenes, sizes, args.frames)
     elif args.what == "server":
@@ -175,6 +238,32 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _bench_quality(args) -> int:
+    from quadcast.cli import bench
+    from quadcast.protocol.methods import check_method
+    from quadcast.render.camera import parse_size
+    methods = [m.strip() for m in (args.methods or ",".join(bench.QUALITY_METHODS)).split(",") if m.strip()]
+    for m in methods:
+        check_method(m)
+    latencies = []
+    for item in (args.latencies or "20x10,50x20").split(","):
+        lat, sep, jit = item.strip().partition("x")
+        values = _float_list(f"{lat},{jit or 0}", "--latencies")
+        latencies.append((values[0], values[1]))
+    size = parse_size(args.size or "640x360")
+    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    if args.every < 1 or (args.frames is not None and args.frames < 1):
+        raise ValueError("--frames and --every must be >= 1")
+    rows = bench.bench_quality(args.traces, scenes, methods, latencies, size, args.frames, args.every,
+                               args.viewcell, out=Path(args.out) if args.out else None, quiet=args.quiet)
+    if rows:
+        print()
+        print(bench.format_quality_table(rows), end="")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
+    return 0
+
+
 # -------------------------------------------------------------------------------------------------- demo
 
 def cmd_demo(args) -> int:
@@ -185,6 +274,14 @@ def cmd_demo(args) -> int:
 
 # -------------------------------------------------------------------------------------------------- main
 
+def add_trace_placement(p: argparse.ArgumentParser, start: bool = True) -> None:
+    """``--anchor`` (and ``--start``) of the commands that follow a trace."""
+    p.add_argument("--anchor", help="re-anchor the trace into the scene: 'spawn' (the scene's spawn point) or "
+                                    "'x,y,z[,yaw_deg]'; its pose at --start goes there, its motion stays relative")
+    if start:
+        p.add_argument("--start", type=float, default=0.0, help="trace time to start at, seconds")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="quadcast", description=__doc__.split("\n\n")[0])
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -193,6 +290,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render ground-truth frames along a camera trace")
     p.add_argument("--scene", default="builtin:courtyard")
     p.add_argument("--trace", default="builtin:walk")
+    add_trace_placement(p)
     p.add_argument("--size", default="960x540", help="WxH")
     p.add_argument("--frames", type=int, default=10)
     p.add_argument("--every", type=int, default=1, help="use every K-th pose of the trace")
@@ -213,18 +311,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_encode)
 
-    p = sub.add_parser("predict", help="pose-prediction errors along a trace (QUASAR Table 1)")
-    p.add_argument("--trace", default="builtin:walk")
-    p.add_argument("--latency", type=float, default=20.0, help="one-way latency, ms")
-    p.add_argument("--jitter", type=float, default=10.0, help="uniform jitter, +- ms")
-    p.add_argument("--no-predict", action="store_true", help="use the last received pose as is")
-    p.add_argument("--smooth", action="store_true", help="Savitzky-Golay smoothing before prediction")
-    p.add_argument("--seed", type=int, default=0)
+    p = sub.add_parser("predict", help="pose-prediction errors along traces, without and with prediction (QUASAR "
+                                       "Table 1)")
+    p.add_argument("--trace", action="append", help="a trace (repeat for several; default builtin:walk)")
+    p.add_argument("--scene", default="builtin:courtyard", help="scene whose spawn point --anchor spawn uses")
+    add_trace_placement(p)
+    p.add_argument("--duration", type=float, help="seconds of the trace from --start (default: to its end)")
+    p.add_argument("--latency", default="20", help="one-way latency, ms; several comma-separated (e.g. 20,50)")
+    p.add_argument("--jitter", default="10", help="uniform jitter, +- ms; one, or one per latency (e.g. 10,20)")
+    p.add_argument("--seed", type=int, default=0, help="first jitter seed")
+    p.add_argument("--seeds", type=int, default=1, help="jitter draws averaged per row")
+    p.add_argument("--json", help="also write the rows to this JSON file")
     p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser("eval", help="replay a trace under simulated latency; Mbps and FLIP/SSIM/PSNR per trace")
     p.add_argument("--scene", default="builtin:courtyard")
     p.add_argument("--trace", default="builtin:walk")
+    add_trace_placement(p)
     p.add_argument("--method", default="quasar", choices=["quasar", "quadstream", "meshwarp", "meshwarp120", "atw"])
     p.add_argument("--latency", type=float, default=20.0, help="one-way latency, ms")
     p.add_argument("--jitter", type=float, default=10.0, help="uniform jitter, +- ms")
@@ -243,18 +346,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_eval)
 
-    p = sub.add_parser("bench", help="print speed figures (not a test)")
-    p.add_argument("what", choices=["server", "render", "client", "stereo", "browser"],
+    p = sub.add_parser("bench", help="print speed figures (not a test); 'quality': quality under real head motion")
+    p.add_argument("what", choices=["server", "render", "client", "stereo", "browser", "quality"],
                    help="stereo (YORO quality and cost ratio) runs at the first of --sizes; browser (the viewer page "
                         "in headless Chromium against a live server on loopback: fps, frame age) on the first of "
-                        "--scenes")
+                        "--scenes; quality replays real head traces (default: ../shared/traces/*.txt) in each scene "
+                        "for every method")
+    p.add_argument("traces", nargs="*", help="quality: QUASAR-format head trace files")
     p.add_argument("--scenes", default="builtin:courtyard,monastery")
     p.add_argument("--sizes", default="960x540,1920x1080")
-    p.add_argument("--frames", type=int, default=10)
+    p.add_argument("--frames", type=int, help="frames per run (default 10; quality: display frames, default 240 = "
+                                              "the 4 s window at 60 Hz)")
     p.add_argument("--json", help="also write the figures to this JSON file")
     p.add_argument("--seconds", type=float, default=20.0, help="browser: measuring time per size")
     p.add_argument("--screenshot", help="browser: save a screenshot of the page (last size) to this PNG")
     p.add_argument("--trace", default="builtin:walk", help="browser: the built-in trace the page follows")
+    p.add_argument("--methods", help="quality: methods, comma-separated (default all five)")
+    p.add_argument("--latencies", help="quality: one-way latency x jitter in ms, comma-separated (default 20x10,50x20)")
+    p.add_argument("--size", help="quality: WxH (default 640x360)")
+    p.add_argument("--every", type=int, default=8, help="quality: score every K-th display frame")
+    p.add_argument("--viewcell", type=float, default=0.5, help="quality: view-cell radius, metres")
+    p.add_argument("--out", help="quality: keep every run's summary, frames.csv and report.html under this folder")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demo", help="the live system on the built-in scene: server, link (20±10 ms) and client "

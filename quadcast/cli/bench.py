@@ -18,6 +18,11 @@ figures depend on the machine (Mesa llvmpipe on 2 CPU cores here, not a GPU).
   mesh; stage times are GPU-finished wall clock, medians over the frames, read-backs excluded. A last row runs
   YORO on the deferred renderer's own G-buffer (client.stereo.benchmark_stereo), where the second-eye render it
   saves is a full deferred render.
+- `bench_quality` (`quadcast bench quality`): image quality under real head motion, not speed -- each real head
+  trace (QUASAR format; default: every .txt in :data:`SHARED_TRACES`) re-anchored at each scene's spawn point, its
+  4 s of fastest motion, replayed in virtual time (`quadcast.sim.evaluate.run_eval`) for every method at each link
+  latency: FLIP, SSIM, PSNR, holes, Mbps, residual/reference bytes, and quasar's FLIP over MeshWarp's. Its figures
+  do not depend on the machine's speed.
 """
 from __future__ import annotations
 
@@ -33,6 +38,12 @@ from quadcast.render.scene import Scene, SceneError, load_scene
 from quadcast.render.traces import Trace, resolve_trace, scene_tour
 
 SERVER_STAGES = ("gbuffers", "quads", "merge", "gather", "zstd", "video")
+SHARED_TRACES = Path(__file__).resolve().parents[2] / "shared" / "traces"
+"""Where `quadcast bench quality` looks for real head traces by default: the checkout's ../shared/traces."""
+QUALITY_SCENES = ("builtin:courtyard", "monastery")
+QUALITY_METHODS = ("quasar", "quadstream", "meshwarp", "meshwarp120", "atw")
+QUALITY_LATENCIES = ((20.0, 10.0), (50.0, 20.0))
+QUALITY_SECONDS = 4.0
 CLIENT_STAGES = ("zstd", "video", "quad_update", "mesh", "render")
 
 
@@ -43,7 +54,8 @@ def trace_for(scene_spec: str, scene: Scene) -> Trace:
     if scene_spec.startswith("builtin:courtyard"):
         return resolve_trace("builtin:walk")
     if scene_spec == "monastery":
-        return scene_tour(scene.bounds(), centre=(-3.7, 1.5), radius=5.0, eye_height=2.0, name="tour:monastery")
+        x, _, z = scene.spawn.position
+        return scene_tour(scene.bounds(), centre=(x, z), radius=5.0, eye_height=2.0, name="tour:monastery")
     return scene_tour(scene.bounds(), name=f"tour:{scene.name}")
 
 
@@ -262,3 +274,90 @@ def bench_stereo(scenes: list[str], size: tuple[int, int] = (960, 540), frames: 
                   f"FLIP {s.flip:.4f} | synth {b.synthesize_ms:.1f} + redo {extra:.1f} ms vs a deferred render "
                   f"{b.render_ms:.1f} ms -> cost {100 * cost:.1f}% of two renders", flush=True)
     return rows
+
+
+def quality_traces(paths: list[str] | None) -> list[Path]:
+    """The trace files of `bench_quality`: `paths`, or every .txt in :data:`SHARED_TRACES` (none when absent)."""
+    if paths:
+        missing = [p for p in paths if not Path(p).is_file()]
+        if missing:
+            raise ValueError(f"bench quality: no such trace file(s): {', '.join(missing)}")
+        return [Path(p) for p in paths]
+    return sorted(SHARED_TRACES.glob("*.txt")) if SHARED_TRACES.is_dir() else []
+
+
+def bench_quality(traces: list[str] | None = None, scenes=QUALITY_SCENES, methods=QUALITY_METHODS,
+                  latencies=QUALITY_LATENCIES, size: tuple[int, int] = (640, 360), frames: int | None = None,
+                  every: int = 8, viewcell: float = 0.5, seconds: float = QUALITY_SECONDS, seed: int = 0,
+                  out: Path | None = None, quiet: bool = False) -> list[dict]:
+    """Quality under real head motion (see the module docstring): one row per scene x trace x latency x method.
+    `frames` display frames (default: `seconds` at 60 Hz) from the start of each trace's fastest `seconds`
+    (`Trace.fastest_window`), every `every`-th scored. With `out`, each run's outputs go to a folder of it.
+    quasar's rows carry ``flip_vs_meshwarp`` (its FLIP / MeshWarp's on the same trace, scene and link) when MeshWarp
+    was run too."""
+    from quadcast.render.traces import load_trace
+    from quadcast.sim.evaluate import EvalSpec, run_eval
+
+    files = quality_traces(traces)
+    if not files:
+        print(f"skip bench quality: no head traces in {SHARED_TRACES} (give trace files as arguments)", flush=True)
+        return []
+    frames = int(round(seconds * 60)) if frames is None else frames
+    starts = {}
+    for path in files:
+        trace = load_trace(path)
+        starts[path] = trace.fastest_window(seconds)
+        print(f"{path.stem}: fastest {seconds:g} s from {starts[path]:.2f} s of {trace.duration:.1f} s", flush=True)
+    loaded = [spec for spec, _, _ in bench_scenes(list(scenes))]   # skips (and says why) scenes that do not load
+    rows = []
+    header = (f"{'scene':18s} {'trace':22s} {'link':>6s} {'method':>11s} {'FLIP':>6s} {'SSIM':>6s} {'PSNR':>6s} "
+              f"{'holes%':>7s} {'max%':>6s} {'Mbps':>7s} {'res/ref':>7s}")
+    print(header, flush=True)
+    for scene in loaded:
+        for path in files:
+            for lat, jit in latencies:
+                group = []
+                for method in methods:
+                    spec = EvalSpec(scene=scene, trace=str(path), anchor="spawn", start=starts[path], method=method,
+                                    latency_ms=lat, jitter_ms=jit, viewcell_m=viewcell, width=size[0],
+                                    height=size[1], frames=frames, every=every, seed=seed)
+                    name = f"{scene.split(':')[-1]}_{path.stem}_{lat:g}ms_{method}"
+                    s = run_eval(spec, out / name if out is not None else None, quiet=quiet)
+                    row = {"scene": scene, "trace": path.stem, "start_s": starts[path], "latency_ms": lat,
+                           "jitter_ms": jit, "method": method, "size": f"{size[0]}x{size[1]}", "frames": s["frames"],
+                           "flip": s["flip"], "ssim": s["ssim"], "psnr": s["psnr"], "holes": s["holes"]["mean"],
+                           "holes_max": s["holes"]["max"], "black_frames": s["black_frames"], "mbps": s["mbps"],
+                           "residual_to_reference_bytes": s.get("residual_to_reference_bytes"),
+                           "pose_error_deg": s["pose_error_deg"]["mean"], "pose_error_cm": s["pose_error_cm"]["mean"]}
+                    group.append(row)
+                    rows.append(row)
+                    _print_quality_row(row)
+                by = {r["method"]: r for r in group}
+                if "quasar" in by and "meshwarp" in by and by["meshwarp"]["flip"]:
+                    by["quasar"]["flip_vs_meshwarp"] = by["quasar"]["flip"] / by["meshwarp"]["flip"]
+                    print(f"{'':18s} {'':22s} {lat:>3g}±{jit:<2g} quasar FLIP / MeshWarp's = "
+                          f"{by['quasar']['flip_vs_meshwarp']:.3f}", flush=True)
+    return rows
+
+
+def _print_quality_row(r: dict) -> None:
+    from quadcast.sim.report import format_figure as f
+    pct = lambda v: None if v is None else 100 * v  # noqa: E731
+    print(f"{r['scene']:18s} {r['trace'][:22]:22s} {r['latency_ms']:>3g}±{r['jitter_ms']:<2g} {r['method']:>11s} "
+          f"{f(r['flip'], '6.4f')} {f(r['ssim'], '6.4f')} {f(r['psnr'], '6.2f')} {f(pct(r['holes']), '7.3f')} "
+          f"{f(pct(r['holes_max']), '6.2f')} {f(r['mbps'], '7.2f')} {f(r['residual_to_reference_bytes'], '7.3f')}",
+          flush=True)
+
+
+def format_quality_table(rows: list[dict]) -> str:
+    """The rows of `bench_quality` as a markdown table."""
+    from quadcast.sim.report import format_figure as f
+    pct = lambda v: None if v is None else 100 * v  # noqa: E731
+    lines = ["| scene | trace | link (ms) | method | FLIP | SSIM | PSNR (dB) | holes % (max) | Mbps | res/ref | "
+             "FLIP / MeshWarp |", "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['trace']} | {r['latency_ms']:g}±{r['jitter_ms']:g} | {r['method']} | "
+                     f"{f(r['flip'], '.4f')} | {f(r['ssim'], '.4f')} | {f(r['psnr'], '.2f')} | "
+                     f"{f(pct(r['holes']), '.2f')} ({f(pct(r['holes_max']), '.1f')}) | {f(r['mbps'], '.2f')} | "
+                     f"{f(r['residual_to_reference_bytes'], '.3f')} | {f(r.get('flip_vs_meshwarp'), '.3f')} |")
+    return "\n".join(lines) + "\n"

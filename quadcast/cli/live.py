@@ -126,6 +126,7 @@ def cmd_client(args) -> int:
                                 ("loss", args.label_loss), ("viewcell_m", args.label_viewcell)) if v is not None}
     cfg = ClientConfig(host=host, port=port, trace=args.trace, out=args.out, scene=args.scene, method=args.method,
                        width=w, height=h, fovy_deg=args.fovy, duration=args.duration, start=args.start,
+                       anchor=args.anchor,
                        record_every=args.record_every, token=args.token or "", transport=args.transport,
                        retries=args.retries, score=not args.no_score, stereo=args.stereo, labels=labels,
                        tls=args.tls, tls_ca=args.tls_ca, insecure=args.insecure, stun=args.stun)
@@ -191,6 +192,7 @@ def cmd_link(args) -> int:
 
 def add_live_commands(sub) -> None:
     """Add ``server``, ``client`` and ``link`` to ``quadcast``'s subparsers."""
+    from quadcast.cli import add_trace_placement
     from quadcast.protocol.admission import ServerLimits
     from quadcast.protocol.methods import METHODS
     lim = ServerLimits()
@@ -254,6 +256,7 @@ def add_live_commands(sub) -> None:
     p.add_argument("--fovy", type=float, default=60.0)
     p.add_argument("--duration", type=float, help="seconds (default: the rest of the trace)")
     p.add_argument("--start", type=float, default=0.0, help="trace time to start at, seconds")
+    add_trace_placement(p, start=False)
     p.add_argument("--record-every", type=int, default=1, help="record (and score) every K-th displayed frame")
     p.add_argument("--transport", default="tcp", choices=["tcp", "webrtc"])
     p.add_argument("--token", help="shared secret for the server")
