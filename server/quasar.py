@@ -9,6 +9,7 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 
 from quadcast.protocol.frame import FramePayload, FrameType, Method
+from quadcast.protocol.methods import DEFAULT_CRF
 from quadcast.protocol.quads import LayerKind, QuadFrame, QuadLayer, QuadSet, encode_quad_frame
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.quadcache import QuadCache
@@ -39,11 +40,11 @@ class QuasarSettings:
     far_field: bool = True               # a cube map around the view cell behind everything (server/farfield.py)
     far_scale: float = 0.25              # its face size, relative to the view's height ...
     far_block: int = 16                  # ... in whole blocks of this many pixels (its quads)
-    far_split_m: float = 40.0            # geometry farther than this gets no quads: the far field shows it
+    far_split_m: float = 0.0             # > 0: geometry farther than this gets no quads (the far field shows it)
     connectivity: float = 0.001          # EDP: relative depth gap that is still the same surface
     change_threshold: float = 0.01       # relative depth change that makes a reference pixel "updated"
     zstd_level: int = 3
-    video: VideoSettings = field(default_factory=VideoSettings)
+    video: VideoSettings = field(default_factory=lambda: VideoSettings(crf=DEFAULT_CRF["quasar"]))
 
     def __post_init__(self):
         if self.width % 2 or self.height % 2 or self.width < 16 or self.height < 16:
@@ -74,7 +75,7 @@ class QuasarServer(MethodServer):
         self.layout = AtlasLayout.for_view(s.width, s.height, s.layers - 1, (probe.width, probe.height),
                                            s.hidden_scale, s.far_size)
         # With a far field, geometry beyond the split gets no quads (the far field shows it).
-        split = dict(max_depth=s.far_split_m) if s.far_field else {}
+        split = dict(max_depth=s.far_split_m) if s.far_field and s.far_split_m > 0 else {}
         self.visible_params = replace(s.visible, **split)
         self.hidden_params = replace(s.hidden, **split)
         far = self.camera_for(Pose([0, 0, 0])).frustum.far
@@ -194,7 +195,7 @@ class QuasarServer(MethodServer):
             with np.errstate(invalid="ignore"):
                 revealed = np.isinf(mesh_depth) | (depth < mesh_depth * (1 - s.change_threshold))
             revealed = binary_dilation(revealed, iterations=1)
-            if self.far_field is not None:
+            if self.far_field is not None and s.far_split_m > 0:
                 revealed &= ~(depth > s.far_split_m)       # far geometry (and revealed sky) is the far field's
             rev = quads(gbs[0], camera, self.visible_params, mask=revealed) if revealed.any() else QuadSet.empty()
             layers.append(QuadLayer(LayerKind.UPDATED, s.width, s.height, ref_cam.to_array(), L.reference, updated))
