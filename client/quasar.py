@@ -23,7 +23,9 @@ from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 # Fill-in layers sit farther along the eye rays (hidden 0.3%; wide FOV 2%, its relaxed half-resolution planes are
 # coarser), so where they overlap the main layer at about the same depth (the wide view overlaps the frame's
 # border; relaxed hidden-layer planes graze visible surfaces) the main layer shows.
-FILL_DEPTH_SCALE = {LayerKind.HIDDEN: 1.003, LayerKind.WIDE: 1.02}
+FILL_DEPTH_SCALE = {LayerKind.HIDDEN: 1.003, LayerKind.WIDE: 1.02, LayerKind.FAR: 2.0}
+"""How far behind the main layer each fill-in layer is drawn (a factor on view depth along the eye ray): the
+far field lies behind everything."""
 
 
 class QuasarClient(MethodClient):
@@ -47,6 +49,7 @@ class QuasarClient(MethodClient):
         self.cache: QuadCache | None = None
         self.reference_id = -1
         self.reference_camera: Camera | None = None
+        self.far_layers: list[MeshLayer] = []
         self.atlas: moderngl.Texture | None = None
         self._needs_reference = True
         self.last_frame_id = -1
@@ -94,12 +97,17 @@ class QuasarClient(MethodClient):
             self.cache.reset(visible.quads)
             self.reference_camera = layers[kinds.index(LayerKind.VISIBLE)][1]
             self.reference_rect = visible.atlas_rect
+            # The far field comes with reference frames and stays until the next one (its colour is in every
+            # frame's atlas); the same MeshLayer objects, so the mesh keeps its buffers.
+            self.far_layers = [MeshLayer(l.quads, cam, l.atlas_rect, FILL_DEPTH_SCALE[LayerKind.FAR])
+                               for l, cam in layers if l.kind == LayerKind.FAR]
             self.reference_id = payload.frame_id
         elif LayerKind.UPDATED in kinds:
             self.cache.update(frame.layers[kinds.index(LayerKind.UPDATED)].quads)
         mesh_layers = [MeshLayer(self.cache.quads, self.reference_camera, self.reference_rect)]
         mesh_layers += [MeshLayer(l.quads, cam, l.atlas_rect, FILL_DEPTH_SCALE.get(l.kind, 1.0)) for l, cam in layers
                         if l.kind in (LayerKind.REVEALED, LayerKind.HIDDEN, LayerKind.WIDE)]
+        mesh_layers += self.far_layers
         ms["quad_update"] = (time.perf_counter() - t0) * 1e3
 
         t0 = time.perf_counter()

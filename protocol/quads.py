@@ -153,6 +153,7 @@ class LayerKind(enum.IntEnum):
     WIDE = 2
     UPDATED = 3
     REVEALED = 4
+    FAR = 5        # a face of the far-field cube map (server/farfield.py)
 
 
 _LAYER_KIND_VALUES = frozenset(int(k) for k in LayerKind)

@@ -129,7 +129,8 @@ class QuadMesh:
     def draw(self, camera: Camera, atlas: moderngl.Texture) -> None:
         """Render the mesh from `camera` into the bound framebuffer (depth test on)."""
         atlas.use(0)
-        set_uniforms(self.prog, u_atlas=0, u_proj=gl_matrix(camera.projection_matrix()))
+        set_uniforms(self.prog, u_atlas=0, u_proj=gl_matrix(camera.projection_matrix()),
+                     u_max_depth=0.999 * camera.frustum.far)
         view = camera.view_matrix()
         for layer, buf in self.layers:
             set_uniforms(self.prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()),

@@ -77,7 +77,7 @@ class ServerConfig:
     max_height: int = 1080
     viewcell_m: float = 0.5
     reference_every: int = 5
-    crf: float = 23.0
+    crf: float | None = None            # None: each method's own (quadcast.protocol.methods.DEFAULT_CRF)
     lead_ms: float = 40.0               # display time - render start, beyond the measured encode time
     predict: bool = True
     max_prediction_s: float = 0.5       # never extrapolate the pose further ahead (the predictor is kinematic)
@@ -173,7 +173,7 @@ class PipelineSpec:
     fovy_deg: float
     viewcell_m: float
     reference_every: int
-    crf: float
+    crf: float | None
 
 
 class SessionPipeline:

@@ -83,7 +83,8 @@ class LayerRenderer:
 @dataclass(frozen=True)
 class AtlasLayout:
     """Where each layer's colour goes in the video frame: the reference view and the new view at full size side by
-    side, then the hidden layers and the wide FOV at reduced size in a row below (QUASAR §3.4.1, linear packing)."""
+    side, then the hidden layers and the wide FOV at reduced size in a row below (QUASAR §3.4.1, linear packing),
+    then, with a far field, its six cube faces in a row below that."""
 
     width: int
     height: int
@@ -91,16 +92,20 @@ class AtlasLayout:
     current: tuple[int, int, int, int]
     hidden: tuple[tuple[int, int, int, int], ...]
     wide: tuple[int, int, int, int]
+    far: tuple[tuple[int, int, int, int], ...] = ()
 
     @classmethod
     def for_view(cls, width: int, height: int, hidden_layers: int, wide_size: tuple[int, int],
-                 hidden_scale: float = 0.5) -> "AtlasLayout":
+                 hidden_scale: float = 0.5, far_size: int = 0) -> "AtlasLayout":
         hw, hh = max(2, int(width * hidden_scale)), max(2, int(height * hidden_scale))
         hidden = tuple((i * hw, height, hw, hh) for i in range(hidden_layers))
         wide = (hidden_layers * hw, height, *wide_size)
         aw = max(2 * width, wide[0] + wide[2])
         ah = height + max(hh if hidden_layers else 0, wide[3])
-        return cls(aw + aw % 2, ah + ah % 2, (0, 0, width, height), (width, 0, width, height), hidden, wide)
+        far = tuple((i * far_size, ah, far_size, far_size) for i in range(6)) if far_size else ()
+        if far:
+            aw, ah = max(aw, 6 * far_size), ah + far_size
+        return cls(aw + aw % 2, ah + ah % 2, (0, 0, width, height), (width, 0, width, height), hidden, wide, far)
 
 
 class AtlasComposer:

@@ -35,6 +35,7 @@ class QuadParams:
     coarse_passes: int = 3         # first passes also merge continuous (non-similar) quads
     max_angle_deg: float = 80.0    # normals are kept within this angle of the view ray
     sky: bool = True               # pixels with no geometry get far, camera-facing quads (the sky's colour)
+    max_depth: float = 0.0         # > 0: geometry farther than this (m, view depth) gets no quads (the far field)
 
     def relaxed(self, factor: float = 10.0, coarse_passes: int = 4) -> "QuadParams":
         """Hidden layers and wide FOV: thresholds ×factor, one more coarse pass (QUASAR §4.1.2)."""
@@ -124,7 +125,8 @@ class QuadGenerator:
                      u_inner_frustum=tuple(0.98 * v / fi.near for v in (fi.left, fi.right, fi.bottom, fi.top))
                      if fi else (0.0, 0.0, 0.0, 0.0),
                      u_delta_max=params.delta_max, u_max_angle=max_angle,
-                     u_sky_distance=camera.frustum.far * 0.9 if params.sky else 0.0)
+                     u_sky_distance=camera.frustum.far * 0.9 if params.sky else 0.0,
+                     u_max_depth=params.max_depth if params.max_depth > 0 else 3.0e38)
         self.maps[0].bind_to_storage_buffer(0)
         prog.run((self.width + 7) // 8, (self.height + 7) // 8)
         ctx.memory_barrier()

@@ -3,17 +3,19 @@ residual frames (§3.5), the colour atlas as H.264 and the quads as a columnar z
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.ndimage import binary_dilation
 
 from quadcast.protocol.frame import FramePayload, FrameType, Method
+from quadcast.protocol.methods import DEFAULT_CRF
 from quadcast.protocol.quads import LayerKind, QuadFrame, QuadLayer, QuadSet, encode_quad_frame
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.quadcache import QuadCache
 from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 from quadcast.render.renderer import DeferredRenderer, GBuffer
+from quadcast.server.farfield import FarField
 from quadcast.server.layers import AtlasComposer, AtlasLayout, LayerRenderer, wide_camera
 from quadcast.server.method import MethodServer
 from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings, quad_stats
@@ -35,10 +37,14 @@ class QuasarSettings:
     wide_fovy_deg: float = 120.0
     wide_scale: float = 0.5
     hidden_scale: float = 0.5
+    far_field: bool = True               # a cube map around the view cell behind everything (server/farfield.py)
+    far_scale: float = 0.25              # its face size, relative to the view's height ...
+    far_block: int = 16                  # ... in whole blocks of this many pixels (its quads)
+    far_split_m: float = 0.0             # > 0: geometry farther than this gets no quads (the far field shows it)
     connectivity: float = 0.001          # EDP: relative depth gap that is still the same surface
     change_threshold: float = 0.01       # relative depth change that makes a reference pixel "updated"
     zstd_level: int = 3
-    video: VideoSettings = field(default_factory=VideoSettings)
+    video: VideoSettings = field(default_factory=lambda: VideoSettings(crf=DEFAULT_CRF["quasar"]))
 
     def __post_init__(self):
         if self.width % 2 or self.height % 2 or self.width < 16 or self.height < 16:
@@ -47,6 +53,16 @@ class QuasarSettings:
             raise ValueError(f"viewcell radius must be >= 0 m, got {self.viewcell_radius}")
         if self.reference_every < 1:
             raise ValueError(f"reference_every must be >= 1, got {self.reference_every}")
+        if self.far_block < 2 or self.far_block & (self.far_block - 1):
+            raise ValueError(f"far_block must be a power of 2 >= 2, got {self.far_block}")
+
+    @property
+    def far_size(self) -> int:
+        """The far field's face size in pixels (0 without a far field): whole blocks, at least two."""
+        if not self.far_field:
+            return 0
+        b = self.far_block
+        return max(2 * b, int(self.height * self.far_scale) // b * b)
 
 
 class QuasarServer(MethodServer):
@@ -57,7 +73,13 @@ class QuasarServer(MethodServer):
         self.renderer, self.ctx = renderer, renderer.ctx
         probe = wide_camera(self.camera_for(Pose([0, 0, 0])), s.wide_fovy_deg, s.wide_scale)
         self.layout = AtlasLayout.for_view(s.width, s.height, s.layers - 1, (probe.width, probe.height),
-                                           s.hidden_scale)
+                                           s.hidden_scale, s.far_size)
+        # With a far field, geometry beyond the split gets no quads (the far field shows it).
+        split = dict(max_depth=s.far_split_m) if s.far_field and s.far_split_m > 0 else {}
+        self.visible_params = replace(s.visible, **split)
+        self.hidden_params = replace(s.hidden, **split)
+        far = self.camera_for(Pose([0, 0, 0])).frustum.far
+        self.far_field = FarField(renderer, s.far_size, s.far_block, 0.9 * far) if s.far_field else None
         hidden_size = self.layout.hidden[0][2:] if self.layout.hidden else (s.width, s.height)
         self.layer_renderer = LayerRenderer(renderer, s.width, s.height, s.layers, hidden_size)
         self._generators: dict[tuple[int, int], QuadGenerator] = {}
@@ -119,6 +141,8 @@ class QuasarServer(MethodServer):
                 ref_gb = self.renderer.gbuffer(self.reference_camera, t, target=self.reference_gbuffer,
                                                region=region)
                 self._reference_time = t
+        if is_reference and self.far_field is not None:
+            self.far_field.render(camera.pose.position, t, camera.frustum.near, camera.frustum.far)
         ctx.finish()
         ms["gbuffers"] = (time.perf_counter() - t0) * 1e3
 
@@ -131,7 +155,7 @@ class QuasarServer(MethodServer):
         cam_floats = camera.to_array()
         layers: list[QuadLayer] = []
         if is_reference:
-            visible = quads(gbs[0], camera, s.visible)
+            visible = quads(gbs[0], camera, self.visible_params)
             layers.append(QuadLayer(LayerKind.VISIBLE, s.width, s.height, cam_floats, L.reference, visible))
             self.cache.reset(visible)
             self.reference_camera = camera
@@ -159,7 +183,7 @@ class QuasarServer(MethodServer):
                 if changed_here.any():
                     changed = np.zeros_like(self.reference_ids, bool)
                     changed[rows, cols] = changed_here
-                    updated = quads(ref_gb, ref_cam, s.visible, mask=changed)
+                    updated = quads(ref_gb, ref_cam, self.visible_params, mask=changed)
                     depth_ref[changed_here] = depth_now[changed_here]
                     ids_ref[changed_here] = ids_now[changed_here]
                 self.cache.update(updated)
@@ -171,16 +195,20 @@ class QuasarServer(MethodServer):
             with np.errstate(invalid="ignore"):
                 revealed = np.isinf(mesh_depth) | (depth < mesh_depth * (1 - s.change_threshold))
             revealed = binary_dilation(revealed, iterations=1)
-            rev = quads(gbs[0], camera, s.visible, mask=revealed) if revealed.any() else QuadSet.empty()
+            if self.far_field is not None and s.far_split_m > 0:
+                revealed &= ~(depth > s.far_split_m)       # far geometry (and revealed sky) is the far field's
+            rev = quads(gbs[0], camera, self.visible_params, mask=revealed) if revealed.any() else QuadSet.empty()
             layers.append(QuadLayer(LayerKind.UPDATED, s.width, s.height, ref_cam.to_array(), L.reference, updated))
             layers.append(QuadLayer(LayerKind.REVEALED, s.width, s.height, cam_floats, L.current, rev))
             self.frames_since_reference += 1
         hidden_cam = self.layer_renderer.hidden_camera(camera)
         for gb, rect in zip(gbs[1:], L.hidden):
             layers.append(QuadLayer(LayerKind.HIDDEN, hidden_cam.width, hidden_cam.height, hidden_cam.to_array(),
-                                    rect, quads(gb, hidden_cam, s.hidden, generator=self.hidden_generator)))
-        wide = quads(wide_gb, wide_cam, s.hidden, generator=self.wide_generator, inner=camera)
+                                    rect, quads(gb, hidden_cam, self.hidden_params, generator=self.hidden_generator)))
+        wide = quads(wide_gb, wide_cam, self.hidden_params, generator=self.wide_generator, inner=camera)
         layers.append(QuadLayer(LayerKind.WIDE, wide_cam.width, wide_cam.height, wide_cam.to_array(), L.wide, wide))
+        if is_reference and self.far_field is not None:
+            layers += self.far_field.layers(L.far)           # sent with reference frames; the client keeps them
         ms.update(quads=timings.quads, merge=timings.merge, gather=timings.gather)
 
         t0 = time.perf_counter()
@@ -197,6 +225,9 @@ class QuasarServer(MethodServer):
         for gb, rect in zip(gbs[1:], L.hidden):
             self.atlas.draw(gb.color, rect)
         self.atlas.draw(wide_gb.color, L.wide)
+        if self.far_field is not None:                    # in every frame's atlas: the client samples it there
+            for color, rect in zip(self.far_field.colors, L.far):
+                self.atlas.draw(color, rect)
         video = self.encoder.encode(self.atlas.read(), keyframe=is_reference)
         ms["video"] = (time.perf_counter() - t0) * 1e3
 

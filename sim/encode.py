@@ -22,7 +22,7 @@ __all__ = ["encode_trace"]
 
 
 def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames: int, viewcell: float,
-                 every: int, out: Path, layers: int = 4, crf: float = 23.0, server_hz: float = 30.0,
+                 every: int, out: Path, layers: int = 4, crf: float = 18.0, server_hz: float = 30.0,
                  quiet: bool = False) -> dict:
     """Run QUASAR's server along a trace (poses at `server_hz`, no network); write every frame's payload, the
     H.264 stream and stats.json. Returns the stats."""

@@ -53,7 +53,7 @@ class EvalSpec:
     seed: int = 0
     predict: bool = True
     predictor: PredictorSettings | None = None    # None: quadcast.protocol.prediction.DEFAULT_PREDICTOR
-    crf: float = 23.0
+    crf: float | None = None       # None: the method's own (quadcast.protocol.methods.DEFAULT_CRF)
     reference_every: int = 5
 
 

@@ -215,7 +215,7 @@ def add_live_commands(sub) -> None:
     p.add_argument("--hz", type=float, default=30.0, help="frame rate cap per session")
     p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
     p.add_argument("--reference-every", type=int, default=5, help="a reference frame at least every K frames")
-    p.add_argument("--crf", type=float, default=23.0)
+    p.add_argument("--crf", type=float, help="x264 constant rate factor (default: the method's own)")
     p.add_argument("--lead-ms", type=float, default=40.0,
                    help="render for the pose predicted this far beyond the measured encode time")
     p.add_argument("--no-predict", action="store_true", help="render the last received pose as is")

@@ -19,7 +19,7 @@ import { AtlasVideo } from "./video.js";
 import { MeshRenderer } from "./renderer.js";
 
 // client/quasar.py FILL_DEPTH_SCALE: fill-in layers sit just behind the main one
-const FILL_DEPTH_SCALE = { [LayerKind.HIDDEN]: 1.003, [LayerKind.WIDE]: 1.02 };
+const FILL_DEPTH_SCALE = { [LayerKind.HIDDEN]: 1.003, [LayerKind.WIDE]: 1.02, [LayerKind.FAR]: 2.0 };
 const FILL_KINDS = [LayerKind.REVEALED, LayerKind.HIDDEN, LayerKind.WIDE];
 const MAX_PENDING = 32;          // frames waiting for their picture (client/app.py MAX_INBOX)
 const POSE_HZ = 30;
@@ -56,6 +56,7 @@ function fail(message) {
 let config, gl, canvas, renderer, video, session, ws = null, fatal = false;
 let view = null;                     // {width, height, fovy}: what Hello asked for
 let cache = null, reference = null;  // the cached reference frame: QuadCache + its layer's camera/size/rect
+let farLayers = [];                  // the far field of the cached reference frame (LayerKind.FAR)
 let needsReference = true, frozen = false, newest = null;
 const pending = new Map();           // frame id -> {header, quads}
 let poseSeq = 0, lastPoseSent = -1;
@@ -320,6 +321,10 @@ function apply({ header, quads }, picture) {
     cache = new QuadCache(visible.width, visible.height);
     cache.reset(visible.rows, visible.count);
     reference = { id: header.frameId, camera: visible.cam, width: visible.width, height: visible.height, rect: visible.rect };
+    // the far field comes with reference frames and stays until the next one (its colour is in every atlas)
+    farLayers = layers.filter((l) => l.kind === LayerKind.FAR).map((l) => ({
+      rows: l.rows, count: l.count, camera: l.cam, width: l.width, height: l.height, rect: l.rect,
+      depthScale: FILL_DEPTH_SCALE[LayerKind.FAR] }));
   } else {
     const updated = layers.find((l) => l.kind === LayerKind.UPDATED);
     if (updated) cache.update(updated.rows, updated.count);
@@ -332,6 +337,7 @@ function apply({ header, quads }, picture) {
                   depthScale: FILL_DEPTH_SCALE[l.kind] || 1 });
     }
   }
+  mesh.push(...farLayers);
   renderer.setAtlas(picture, width, height);
   renderer.setLayers(mesh);
   stats.quads = renderer.quadCount;

@@ -12,7 +12,7 @@ export const LAYER_BYTES = 85;        // <BHH4H16fII
 export const MAX_LAYERS = 16;
 export const MAX_SIZE_LOG2 = 11;
 export const ROW_FLOATS = 24;
-export const LayerKind = { VISIBLE: 0, HIDDEN: 1, WIDE: 2, UPDATED: 3, REVEALED: 4 };
+export const LayerKind = { VISIBLE: 0, HIDDEN: 1, WIDE: 2, UPDATED: 3, REVEALED: 4, FAR: 5 };
 const QUAD_BYTES = 10, OFFSET_ROW_BYTES = 32;
 
 export class QuadBlobError extends Error {}
@@ -55,7 +55,7 @@ export function decodeQuadBlob(bytes, { maxQuads = 1 << 23 } = {}) {
     const camera = new Float32Array(16);
     for (let k = 0; k < 16; k++) camera[k] = view.getFloat32(o + 13 + 4 * k, true);
     const count = view.getUint32(o + 77, true), offsetCount = view.getUint32(o + 81, true);
-    if (kind > LayerKind.REVEALED) throw new QuadBlobError(`layer[${i}].kind: unknown kind ${kind}`);
+    if (kind > LayerKind.FAR) throw new QuadBlobError(`layer[${i}].kind: unknown kind ${kind}`);
     if (!width || !height) throw new QuadBlobError(`layer[${i}]: expected a non-empty image, got ${width}x${height}`);
     if (offsetCount > count) throw new QuadBlobError(`layer[${i}].offset_count: expected <= quad count ${count}, got ${offsetCount}`);
     if (!camera.every(Number.isFinite)) throw new QuadBlobError(`layer[${i}].camera: expected finite numbers`);

@@ -42,7 +42,7 @@ export class MeshRenderer {
                        ["v_position", "v_uv"]);
     this.expandU = uniforms(gl, this.expand, ["u_frustum", "u_near", "u_size", "u_atlas_rect", "u_atlas_size"]);
     this.mesh = link(gl, [shaders.meshVert, shaders.meshFrag], ["quad_mesh.vert.glsl", "quad_mesh.frag.glsl"]);
-    this.meshU = uniforms(gl, this.mesh, ["u_layer_to_view", "u_proj", "u_depth_scale", "u_atlas"]);
+    this.meshU = uniforms(gl, this.mesh, ["u_layer_to_view", "u_proj", "u_depth_scale", "u_max_depth", "u_atlas"]);
     this.quadBuffer = gl.createBuffer();
     this.vertexBuffer = gl.createBuffer();
     this.indexBuffer = gl.createBuffer();
@@ -164,7 +164,10 @@ export class MeshRenderer {
     gl.activeTexture(gl.TEXTURE0);
     gl.bindTexture(gl.TEXTURE_2D, this.atlas);
     gl.uniform1i(u.u_atlas, 0);
-    gl.uniformMatrix4fv(u.u_proj, false, new Float32Array(proj.length ? proj : projection(proj)));
+    const matrix = proj.length ? proj : projection(proj);
+    gl.uniformMatrix4fv(u.u_proj, false, new Float32Array(matrix));
+    // just inside the far plane (f = m[14] / (m[10] + 1) for a column-major perspective matrix)
+    gl.uniform1f(u.u_max_depth, 0.999 * (proj.length ? matrix[14] / (matrix[10] + 1) : proj.far));
     gl.bindVertexArray(this.meshVao);
     for (const layer of this.layers) {
       gl.uniform1f(u.u_depth_scale, layer.depthScale);

@@ -1,0 +1,109 @@
+"""The far field (after continuous near-far partitioning, seeds/002): a low-resolution cube map around the view cell.
+
+On every reference frame the server renders six 90° views from the reference pose's position -- a cube map of
+everything around the view cell, colour and range -- and sends it as six quad layers (`LayerKind.FAR`) whose
+colour sits in the video atlas. Each face is a grid of `block` x `block`-pixel quads forming one continuous
+surface at the range of what the face sees (the farthest depth around each grid corner, so near occluders are
+pushed back onto what lies behind them), with 16 depth offsets per quad so that neighbouring quads share their
+corners: no cracks, whatever the eye's pose. The client keeps the far field with its reference frame and draws it
+behind the quad mesh, so any head rotation shows content -- the sky, or geometry no layer caught -- and geometry
+beyond the split distance (`QuadParams.max_depth`) needs no quads at all.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from quadcast.protocol.quads import LayerKind, QuadLayer, QuadSet, pack_normals, unpack_normals
+from quadcast.render.camera import Camera, Frustum, Pose
+from quadcast.render.renderer import DeferredRenderer, GBuffer
+
+__all__ = ["FACE_DIRECTIONS", "FarField", "face_cameras", "range_grid_quads"]
+
+# Each face: (the direction it looks at, its up vector), world space (+Y up).
+FACE_DIRECTIONS = (((1, 0, 0), (0, 1, 0)), ((-1, 0, 0), (0, 1, 0)), ((0, 1, 0), (0, 0, 1)),
+                   ((0, -1, 0), (0, 0, -1)), ((0, 0, 1), (0, 1, 0)), ((0, 0, -1), (0, 1, 0)))
+
+
+def face_cameras(position, size: int, near: float, far: float) -> list[Camera]:
+    """The six 90° square cameras of a cube map at `position`."""
+    p = np.asarray(position, np.float64)
+    frustum = Frustum.symmetric(90.0, 1.0, near, far)
+    return [Camera(Pose.look_at(p, p + np.asarray(d, np.float64), up), frustum, size, size)
+            for d, up in FACE_DIRECTIONS]
+
+
+def _rays(camera: Camera, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    """Unit view-space rays through image points (pixels from the top-left corner), as render/quad.glsl's
+    ray_dir: (l + (r - l) x / w, t + (b - t) y / h, -near), normalised."""
+    f = camera.frustum
+    r = np.stack([f.left + (f.right - f.left) * px / camera.width,
+                  f.top + (f.bottom - f.top) * py / camera.height,
+                  np.full(np.broadcast(px, py).shape, -f.near)], axis=-1)
+    return r / np.linalg.norm(r, axis=-1, keepdims=True)
+
+
+def range_grid_quads(camera: Camera, depth: np.ndarray, block: int, max_depth: float) -> QuadSet:
+    """One continuous surface over a face: `block`-pixel quads whose corners lie, along their rays, at the
+    farthest view depth (at most `max_depth`; sky counts as `max_depth`) within a block of each grid corner;
+    the lattice points between corners are interpolated bilinearly in view depth."""
+    h, w = depth.shape
+    if w % block or h % block or block & (block - 1):
+        raise ValueError(f"far field: a {w}x{h} face is not a whole number of {block}-pixel blocks (a power of 2)")
+    gx, gy = w // block, h // block
+    z = np.where(np.isfinite(depth), np.minimum(depth, max_depth), max_depth)
+    blocks = z.reshape(gy, block, gx, block).max(axis=(1, 3))
+    padded = np.pad(blocks, 1, mode="edge")
+    corners = np.maximum.reduce([padded[:-1, :-1], padded[:-1, 1:], padded[1:, :-1], padded[1:, 1:]])  # (gy+1, gx+1)
+    # Depth at the 3x3 lattice of every quad (half-block steps): bilinear between its corners.
+    fine = np.empty((2 * gy + 1, 2 * gx + 1))
+    fine[::2, ::2] = corners
+    fine[1::2, ::2] = 0.5 * (corners[:-1] + corners[1:])
+    fine[:, 1::2] = 0.5 * (fine[:, :-2:2] + fine[:, 2::2])
+    jy, ix = np.mgrid[0:gy, 0:gx]
+    ix, jy = ix.ravel(), jy.ravel()
+    half = block / 2
+    # The plane of each quad faces the camera through the quad's centre, at the centre's lattice depth.
+    centre_z = fine[2 * jy + 1, 2 * ix + 1]
+    centre_ray = _rays(camera, (ix + 0.5) * block, (jy + 0.5) * block)
+    normal = unpack_normals(*pack_normals(-centre_ray)).astype(np.float64)   # as the client will see it
+    centre_point = centre_ray * (centre_z / -centre_ray[:, 2])[:, None]
+    d = np.einsum("ij,ij->i", normal, centre_point)
+    offsets = np.empty((len(ix), 4, 4))
+    for s in range(4):                       # sub-quad s (0 TL, 1 TR, 2 BL, 3 BR), corner c (same order)
+        for c in range(4):
+            a, b = (s & 1) + (c & 1), (s >> 1) + (c >> 1)
+            r = _rays(camera, ix * block + a * half, jy * block + b * half)
+            t_surface = fine[2 * jy + b, 2 * ix + a] / -r[:, 2]
+            t_plane = d / np.minimum(np.einsum("ij,ij->i", normal, r), -1e-3)
+            offsets[:, s, c] = t_surface - t_plane
+    n = len(ix)
+    return QuadSet(x=ix * block, y=jy * block, size_log2=np.full(n, int(np.log2(block))),
+                   flattened=np.zeros(n, bool), alpha=np.zeros(n, bool), normal=normal.astype(np.float32),
+                   depth=centre_z.astype(np.float32), offsets=offsets.reshape(n, 16).astype(np.float16))
+
+
+class FarField:
+    """Renders the cube map of a view cell and makes its quad layers (see the module docstring)."""
+
+    def __init__(self, renderer: DeferredRenderer, size: int, block: int, max_depth: float):
+        self.renderer, self.size, self.block, self.max_depth = renderer, size, block, max_depth
+        self.gbuffers = [GBuffer(renderer.ctx, size, size) for _ in FACE_DIRECTIONS]
+        self.cameras: list[Camera] = []
+
+    def render(self, position, t: float, near: float, far: float) -> None:
+        """The six faces at `position`, time `t` (kept on the GPU until the next call)."""
+        self.cameras = face_cameras(position, self.size, near, far)
+        for camera, gb in zip(self.cameras, self.gbuffers):
+            self.renderer.gbuffer(camera, t, target=gb)
+
+    def layers(self, rects) -> list[QuadLayer]:
+        """The faces' quad layers, their colour at `rects` in the atlas."""
+        out = []
+        for camera, gb, rect in zip(self.cameras, self.gbuffers, rects):
+            quads = range_grid_quads(camera, gb.read_depth(), self.block, self.max_depth)
+            out.append(QuadLayer(LayerKind.FAR, self.size, self.size, camera.to_array(), rect, quads))
+        return out
+
+    @property
+    def colors(self):
+        return [gb.color for gb in self.gbuffers]

@@ -1,0 +1,103 @@
+"""The far field (server/farfield.py): a continuous range surface per cube face, sent with reference frames and
+drawn by the client behind everything, so that turning away from what was sent still shows content."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from quadcast.protocol.quads import LayerKind, QuadFrame, decode_quad_frame, encode_quad_frame
+from quadcast.render.camera import Camera, Pose
+from quadcast.server.farfield import face_cameras, range_grid_quads
+
+
+def _corner_points(camera: Camera, quads) -> dict:
+    """Every mesh vertex of the quads as render/quad.glsl makes it: {image point: view-space point}."""
+    f = camera.frustum
+    out: dict = {}
+
+    def ray(px, py):
+        r = np.array([f.left + (f.right - f.left) * px / camera.width,
+                      f.top + (f.bottom - f.top) * py / camera.height, -f.near])
+        return r / np.linalg.norm(r)
+    offsets = quads.offsets.astype(np.float64).reshape(-1, 4, 4)
+    for i in range(len(quads)):
+        size = 1 << int(quads.size_log2[i])
+        x0, y0, n = float(quads.x[i]), float(quads.y[i]), quads.normal[i].astype(np.float64)
+        centre = ray(x0 + size / 2, y0 + size / 2)
+        d = n @ (centre * (quads.depth[i] / -centre[2]))
+        for s in range(4):
+            for c in range(4):
+                a, b = (s & 1) + (c & 1), (s >> 1) + (c >> 1)
+                p = (x0 + a * size / 2, y0 + b * size / 2)
+                r = ray(*p)
+                t = d / min(n @ r, -1e-3) + offsets[i, s, c]
+                out.setdefault(p, []).append(r * t)
+    return out
+
+
+def test_range_grid_is_one_continuous_surface_at_the_farthest_depth():
+    cam = face_cameras((0.0, 1.6, 0.0), 64, 0.1, 100.0)[0]
+    yy, xx = np.mgrid[0:64, 0:64]
+    depth = np.where(xx < 20, 3.0, 30.0).astype(np.float32) + 0.01 * yy     # a near wall beside a far one
+    depth[:8, 40:] = np.inf                                                 # and some sky
+    quads = range_grid_quads(cam, depth, 16, max_depth=90.0)
+    assert len(quads) == 16 and not quads.flattened.any()
+    points = _corner_points(cam, quads)
+    # shared corners coincide, up to the float16 rounding of the offsets (2^-11 of the largest, twice)
+    tolerance = 2 * 2.0 ** -11 * float(np.abs(quads.offsets.astype(np.float64)).max()) + 1e-4
+    for p, pts in points.items():
+        spread = max(np.linalg.norm(q - pts[0]) for q in pts)
+        assert spread < tolerance, f"the quads meeting at {p} disagree by {spread} m"
+    # each grid corner lies at the farthest depth of the blocks around it (sky counts as max_depth)
+    for (px, py), pts in points.items():
+        if px % 16 or py % 16:
+            continue
+        i, j = int(px // 16), int(py // 16)
+        window = depth[max(0, 16 * j - 16):16 * j + 16, max(0, 16 * i - 16):16 * i + 16]
+        expect = min(90.0, float(np.max(np.where(np.isfinite(window), window, 90.0))))
+        assert -pts[0][2] == pytest.approx(expect, abs=tolerance + 1e-3 * expect), (px, py)
+
+
+def test_far_layers_round_trip_the_quad_blob():
+    cams = face_cameras((1.0, 2.0, -3.0), 32, 0.1, 100.0)
+    from quadcast.protocol.quads import QuadLayer
+    layers = [QuadLayer(LayerKind.FAR, 32, 32, c.to_array(), (32 * i, 0, 32, 32),
+                        range_grid_quads(c, np.full((32, 32), 10.0 + i, np.float32), 16, 90.0))
+              for i, c in enumerate(cams)]
+    frame = decode_quad_frame(encode_quad_frame(QuadFrame(layers)), size=(64, 36))
+    assert [l.kind for l in frame.layers] == [LayerKind.FAR] * 6
+    assert all(len(l.quads) == 4 for l in frame.layers)
+
+
+def test_the_six_faces_cover_every_direction_once():
+    cams = face_cameras((0.0, 0.0, 0.0), 8, 0.1, 100.0)
+    dirs = Rotation.random(500, random_state=1).apply([0.0, 0.0, -1.0])
+    for d in dirs:
+        inside = 0
+        for c in cams:
+            v = c.view_matrix()[:3, :3] @ d
+            if v[2] < 0 and abs(v[0] / -v[2]) <= 1 and abs(v[1] / -v[2]) <= 1:
+                inside += 1
+        assert inside >= 1
+
+
+@pytest.mark.parametrize("yaw", [0.0, 100.0, 180.0])
+def test_turning_away_from_what_was_sent_still_shows_the_far_field(courtyard_renderer, yaw):
+    """A reference frame sent facing one way, shown facing another: with the far field no pixel stays black."""
+    from quadcast.client.quasar import QuasarClient
+    from quadcast.server.quasar import QuasarServer, QuasarSettings
+    w, h = 192, 108
+    sent = Pose([0.0, 1.6, 4.0])
+    shown = Pose(sent.position, (Rotation.from_quat(sent.quat) * Rotation.from_euler("y", yaw, degrees=True)).as_quat())
+    black = {}
+    for far in (True, False):
+        server = QuasarServer(courtyard_renderer, QuasarSettings(width=w, height=h, far_field=far))
+        client = QuasarClient(w, h, ctx=courtyard_renderer.ctx)
+        client.receive(server.encode(sent, 0.0))
+        image = client.render(shown)
+        black[far] = float((image.max(axis=2) == 0).mean())
+        server.close()
+    assert black[True] == 0.0, black
+    if yaw >= 100:
+        assert black[False] > 0.3, black          # without it, turning away shows nothing
