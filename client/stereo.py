@@ -167,13 +167,15 @@ class StereoSynthesizer:
                                  f"{self.width}x{self.height}")
         return depth.components == 4
 
-    def synthesize(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera) -> StereoResult:
+    def synthesize(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera,
+                   edge_mask: bool = True) -> StereoResult:
         """The other eye from the dominant eye's colour (RGBA8), depth (GBuffer.position or R32F linear depth)
-        and camera: the three YORO stages, `reproject`, `scan` and `patch`."""
+        and camera: the three YORO stages, `reproject`, `scan` and `patch`. `edge_mask=False` skips the
+        conservative edge reject (the mask's g), which only mode 2 uses."""
         self._check_inputs(color, depth, camera)
         self.reproject(depth, camera)
         self.scan()
-        return self.patch(color, depth, camera)
+        return self.patch(color, depth, camera, edge_mask)
 
     def reproject(self, depth: moderngl.Texture, camera: Camera) -> None:
         """Algorithm 1 into `targets` (RG32F, ImBuffer size): where each pixel lands in the other eye (x in
@@ -197,14 +199,17 @@ class StereoSynthesizer:
         self.scan_cs.run((self.height + 31) // 32)
         self.ctx.memory_barrier()
 
-    def patch(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera) -> StereoResult:
-        """Algorithm 3, `imbuffer` + the dominant eye's colour and depth -> the other eye's colour and mask."""
+    def patch(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera,
+              edge_mask: bool = True) -> StereoResult:
+        """Algorithm 3, `imbuffer` + the dominant eye's colour and depth -> the other eye's colour and mask (its
+        g, the conservative edge reject, only with `edge_mask`)."""
         is_position = self._check_inputs(color, depth, camera)
         focal_px = camera.focal_px[0]
         color.use(0)
         depth.use(1)
+        settings = self.settings if edge_mask else {**self.settings, "u_edge_radius": 0.0}
         set_uniforms(self.patch_cs, u_color=0, u_depth=1, u_depth_is_position=is_position,
-                     u_disparity_scale=focal_px * self.ipd, **self.settings)
+                     u_disparity_scale=focal_px * self.ipd, **settings)
         self.imbuffer.bind_to_image(0, read=True, write=False)
         self.color.bind_to_image(1, read=False, write=True)
         self.mask.bind_to_image(2, read=False, write=True)
@@ -217,11 +222,11 @@ class StereoSynthesizer:
         """The ImBuffer as (H, intermediate width, 4) float32, top row first (see `scan`)."""
         return read_texture(self.imbuffer, 4, "f4")
 
-    def synthesize_gbuffer(self, gb: GBuffer) -> StereoResult:
+    def synthesize_gbuffer(self, gb: GBuffer, edge_mask: bool = True) -> StereoResult:
         """`synthesize` from a rendered G-buffer (its lit colour, view positions and camera)."""
         if gb.camera is None:
             raise ValueError("synthesize_gbuffer: the G-buffer has no camera (render it first)")
-        return self.synthesize(gb.color, gb.position, gb.camera)
+        return self.synthesize(gb.color, gb.position, gb.camera, edge_mask)
 
     # ------------------------------------------------------------------------------------------------ mode 2
     def cull(self, depth_texture: moderngl.Texture, result: StereoResult | None = None) -> None:
@@ -325,8 +330,9 @@ def benchmark_stereo(renderer, camera: Camera, t: float = 0.0, synthesizer: Ster
     for _ in range(repeats + 1):
         gb = renderer.gbuffer(dominant, t)
         left = gb.read_color()
-        result, ms1 = _timed(ctx, lambda: synth.synthesize_gbuffer(gb))
+        result, ms1 = _timed(ctx, lambda: synth.synthesize_gbuffer(gb, edge_mask=False))
         synthesized = result.read_color()
+        result = synth.synthesize_gbuffer(gb)                      # mode 2 needs the edge reject too
         merged, ms2 = _timed(ctx, lambda: synth.rerender_disoccluded(draw, result))
         rerendered = merged.read_color()
         _, ms3 = _timed(ctx, lambda: renderer.gbuffer(result.camera, t))
@@ -427,7 +433,8 @@ class MeshStereo:
             other_img = rendered
         else:
             result, ms["synthesize"] = _timed(
-                ctx, lambda: self.synth.synthesize(view.color, view.view_depth, dominant_cam))
+                ctx, lambda: self.synth.synthesize(view.color, view.view_depth, dominant_cam,
+                                                   edge_mask=mode == "rerender"))
             if mode == "rerender":
                 def draw(camera: Camera, cull: CullFn) -> moderngl.Texture:
                     self.other_view.render(mesh, camera, atlas, cull=cull)
