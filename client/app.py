@@ -20,6 +20,10 @@ client's event loop (pose sending, frame receiving) can stall while a frame rend
 less than the server's (which uses a worker process per session); poses are stamped with the client's clock when
 sent, so a late pose is late, not wrong.
 
+Receive reports: as each frame arrives (before it is decoded) the client tells the server its id, its size and
+the arrival time on the clock its poses carry (:class:`quadcast.protocol.messages.ReceiveReport`); a server with a
+rate controller (``quadcast server --adapt``) times the link with them.
+
 Loss and resync: a residual for a reference the client lacks, a frame the H.264 decoder cannot use, or a gap
 after a reconnect make the method client need a reference; the client then sends a ReferenceRequest (again every
 ``reference_timeout`` s while it still needs one) and keeps showing its last good state. If the connection
@@ -45,9 +49,9 @@ from pathlib import Path
 
 from quadcast.codec.decoder import VideoError
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.frame import FramePayload, residual_to_reference_bytes
+from quadcast.protocol.frame import FramePayload, peek_frame_id, residual_to_reference_bytes
 from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
-                                        ReferenceRequest, Welcome)
+                                        ReceiveReport, ReferenceRequest, Welcome)
 from quadcast.protocol.methods import METHODS, STEREO_METHODS, MethodConfig
 from quadcast.protocol.session import ClientSession, RequestReference
 from quadcast.render.camera import Pose
@@ -265,6 +269,11 @@ class LiveClient:
         while channel is not None:
             self.channel = channel
             self.session.connected(asyncio.get_running_loop().time())
+            hello_report = self.session.announce_reports()
+            try:
+                await channel.send(ReceiveReport(hello_report.entries))     # "this client reports arrivals"
+            except (ConnectionError, OSError):
+                pass
             senders = [asyncio.create_task(self._send_poses(channel)), asyncio.create_task(self._receive(channel))]
             stop = asyncio.create_task(self.finished.wait())
             try:
@@ -329,6 +338,9 @@ class LiveClient:
                 log.warning("unexpected %s from the server", type(msg).__name__)
                 return
             now = asyncio.get_running_loop().time()
+            if len(msg.payload) >= 12:       # its arrival, for the server's rate controller (on the poses' clock)
+                report = self.session.frame_arrived(self.now_t(), peek_frame_id(msg.payload), len(msg.payload))
+                await channel.send(ReceiveReport(report.entries))
             try:
                 payload = msg.decode(self.cfg.max_message_bytes)
             except ProtocolError as exc:

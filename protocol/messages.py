@@ -21,6 +21,7 @@ Frame              4    the rest of the message: an encoded :class:`quadcast.pro
 ReferenceRequest   5    reason str
 ErrorMessage       6    code u16, text str[, retry_after_ms u32 -- only when non-zero (ErrorCode.BUSY)]
 Bye                7    (empty)
+ReceiveReport      8    count u16, then per frame: frame_id u32, bytes u32, t_arrive f64 (client clock, s)
 =================  ===  ==========================================================================
 
 A PoseUpdate is accepted only if it can be rendered (:mod:`quadcast.protocol.pose`): coordinates within
@@ -29,7 +30,10 @@ naming the field.
 
 Typical session: client sends ``Hello``; server answers ``Welcome`` (or ``ErrorMessage`` and closes); then the
 client streams ``PoseUpdate`` s and the server ``Frame`` s; a client that lost its reference state sends
-``ReferenceRequest``; either side ends with ``Bye``.
+``ReferenceRequest``; either side ends with ``Bye``. A client may report when each frame arrived and how big it was
+(``ReceiveReport``, on the clock its poses carry): the server's rate controller estimates the link from them
+(:mod:`quadcast.protocol.rate`); a server may ignore them and a client need not send them (the browser viewer
+does not).
 
 Example::
 
@@ -66,6 +70,7 @@ __all__ = [
     "ReferenceRequest",
     "ErrorMessage",
     "Bye",
+    "ReceiveReport",
     "Message",
     "encode_message",
     "decode_message_body",
@@ -98,6 +103,7 @@ class MessageType(enum.IntEnum):
     REFERENCE_REQUEST = 5
     ERROR = 6
     BYE = 7
+    RECEIVE_REPORT = 8
 
 
 class ErrorCode(enum.IntEnum):
@@ -282,11 +288,39 @@ class Bye:
     """Either direction: orderly end of the session."""
 
 
-Message = Union[Hello, Welcome, PoseUpdate, Frame, ReferenceRequest, ErrorMessage, Bye]
+MAX_REPORT_ENTRIES = 256
+"""Most frames one :class:`ReceiveReport` may describe."""
+
+
+@dataclass(frozen=True)
+class ReceiveReport:
+    """Client -> server: frames that arrived, as ``(frame_id, bytes, t_arrive)`` entries -- the frame's id, the
+    size of its payload (the Frame message's body) and when its last byte arrived, on the client's clock (the one
+    :class:`PoseUpdate` times are on). At most :data:`MAX_REPORT_ENTRIES` entries."""
+
+    entries: tuple
+
+    def __post_init__(self) -> None:
+        entries = self.entries
+        if not isinstance(entries, (tuple, list)):
+            raise ValueError(f"ReceiveReport.entries: expected a sequence, got {type(entries).__name__}")
+        if len(entries) > MAX_REPORT_ENTRIES:
+            raise ValueError(f"ReceiveReport.entries: {len(entries)} entries, at most {MAX_REPORT_ENTRIES}")
+        out = []
+        for i, e in enumerate(entries):
+            if not isinstance(e, (tuple, list)) or len(e) != 3:
+                raise ValueError(f"ReceiveReport.entries[{i}]: expected (frame_id, bytes, t_arrive), got {e!r}")
+            out.append((_check_int(f"ReceiveReport.entries[{i}].frame_id", e[0], _U32_MAX),
+                        _check_int(f"ReceiveReport.entries[{i}].bytes", e[1], _U32_MAX),
+                        check_time(f"ReceiveReport.entries[{i}].t_arrive", e[2])))
+        object.__setattr__(self, "entries", tuple(out))
+
+
+Message = Union[Hello, Welcome, PoseUpdate, Frame, ReferenceRequest, ErrorMessage, Bye, ReceiveReport]
 
 _TYPE_OF = {Hello: MessageType.HELLO, Welcome: MessageType.WELCOME, PoseUpdate: MessageType.POSE_UPDATE,
             Frame: MessageType.FRAME, ReferenceRequest: MessageType.REFERENCE_REQUEST,
-            ErrorMessage: MessageType.ERROR, Bye: MessageType.BYE}
+            ErrorMessage: MessageType.ERROR, Bye: MessageType.BYE, ReceiveReport: MessageType.RECEIVE_REPORT}
 
 _NAME_OF = {t: cls.__name__ for cls, t in _TYPE_OF.items()}
 
@@ -299,6 +333,7 @@ _WELCOME = struct.Struct("<Qd")
 _POSE = struct.Struct("<Qd3d4d")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
+_REPORT_ENTRY = struct.Struct("<IId")
 
 
 def _pack_str(s: str) -> bytes:
@@ -321,6 +356,8 @@ def _body(msg: Message) -> bytes:
     if isinstance(msg, ErrorMessage):
         after = _U32.pack(round(msg.retry_after_s * 1e3)) if msg.retry_after_s > 0 else b""
         return _U16.pack(msg.code) + _pack_str(msg.text) + after
+    if isinstance(msg, ReceiveReport):
+        return _U16.pack(len(msg.entries)) + b"".join(_REPORT_ENTRY.pack(*e) for e in msg.entries)
     return b""  # Bye
 
 
@@ -418,6 +455,13 @@ def decode_message_body(mtype: int, body: bytes | memoryview) -> Message:
             if after_ms == 0:
                 raise ProtocolError("ErrorMessage.retry_after_ms: 0 is said by leaving the field out")
             return ErrorMessage(code, text, (after_ms or 0) / 1e3)
+        if t is MessageType.RECEIVE_REPORT:
+            (count,) = r.unpack(_U16, "count")
+            if count > MAX_REPORT_ENTRIES:
+                raise ProtocolError(f"ReceiveReport.count: {count} entries, at most {MAX_REPORT_ENTRIES}")
+            entries = tuple(r.unpack(_REPORT_ENTRY, f"entries[{i}]") for i in range(count))
+            r.end()
+            return ReceiveReport(entries)
         r.end()
         return Bye()
     except ProtocolError:

@@ -10,15 +10,19 @@ decision a streaming session makes; the drivers only move bytes and run the meth
 So the same events give the same decisions in both (``tests/test_session.py`` checks it).
 
 Server side -- events: :meth:`ServerSession.pose_received`, :meth:`~ServerSession.reference_requested`,
-:meth:`~ServerSession.frame_encoded`; decisions: :class:`EncodeFrame` (render and encode for this predicted pose
-and display time, self-contained or not) and the frames to send, in order, from :meth:`~ServerSession.next_to_send`
-(a bounded queue that drops stale frames but never breaks a reference chain).
+:meth:`~ServerSession.frame_encoded`, :meth:`~ServerSession.frame_sent`, :meth:`~ServerSession.report_received`;
+decisions: :class:`EncodeFrame` (render and encode for this predicted pose and display time, self-contained or
+not, at this operating point) and the frames to send, in order, from :meth:`~ServerSession.next_to_send` (a
+bounded queue that drops stale frames but never breaks a reference chain). With a rate controller
+(``ServerSessionConfig.rate``, :mod:`quadcast.protocol.rate`) the session also picks each frame's operating point
+from the client's receive reports and holds new frames back while the link is backed up.
 
-Client side -- events: :meth:`ClientSession.frame_received`, :meth:`~ClientSession.frame_processed`,
-:meth:`~ClientSession.frames_dropped`, :meth:`~ClientSession.tick`, :meth:`~ClientSession.connected`; decisions:
-whether to apply or skip a frame (dependent frames are skipped while the client waits for a self-contained one)
-and :class:`RequestReference` (ask the server for a self-contained frame, again every ``reference_timeout_s``
-while one is still needed).
+Client side -- events: :meth:`ClientSession.frame_arrived`, :meth:`~ClientSession.frame_received`,
+:meth:`~ClientSession.frame_processed`, :meth:`~ClientSession.frames_dropped`, :meth:`~ClientSession.tick`,
+:meth:`~ClientSession.connected`; decisions: :class:`SendReport` (tell the server when a frame arrived), whether
+to apply or skip a frame (dependent frames are skipped while the client waits for a self-contained one) and
+:class:`RequestReference` (ask the server for a self-contained frame, again every ``reference_timeout_s`` while
+one is still needed).
 
 Times are seconds on the driver's clock (``now``); poses carry the client's clock (``t_client``).
 """
@@ -32,12 +36,16 @@ import numpy as np
 
 from quadcast.protocol.pose import MAX_POSITION_M, MAX_TIME_S
 from quadcast.protocol.prediction import PosePredictor, PredictorSettings
+from quadcast.protocol.rate import OperatingPoint, RateConfig, RateController
 
 __all__ = ["ServerSessionConfig", "ServerSession", "ServerCounters", "EncodeFrame", "FrameQueue", "QueueCounters",
-           "ClientSession", "ClientCounters", "RequestReference"]
+           "ClientSession", "ClientCounters", "RequestReference", "SendReport"]
 
 ENCODE_EMA = 0.2
 """Weight of the newest encode time in the server's running estimate."""
+
+POSE_INTERVAL_EMA = 0.2
+"""Weight of the newest pose interval in the server's running estimate (the frame rate the controller plans for)."""
 
 
 # ------------------------------------------------------------------------------------------------- queue
@@ -124,6 +132,8 @@ class ServerSessionConfig:
     queue_frames: int = 3
     min_frame_interval_s: float = 0.0
     idle_timeout_s: float | None = None
+    rate: RateConfig | None = None
+    point: OperatingPoint | None = None
 
     def __post_init__(self) -> None:
         if self.idle_timeout_s is not None and not (np.isfinite(self.idle_timeout_s) and self.idle_timeout_s > 0):
@@ -135,6 +145,8 @@ class ServerSessionConfig:
                 raise ValueError(f"ServerSessionConfig.{name}: expected a finite number >= 0, got {v!r}")
         if self.queue_frames < 1:
             raise ValueError(f"ServerSessionConfig.queue_frames: expected >= 1, got {self.queue_frames}")
+        if self.rate is not None and self.point is not None:
+            raise ValueError("ServerSessionConfig: a fixed point and a rate controller exclude each other")
 
 
 @dataclass(frozen=True)
@@ -147,6 +159,8 @@ class EncodeFrame:
     display_t: float
     reference: bool
     started: float        # driver clock when the decision was made
+    point: OperatingPoint | None = None    # the operating point to encode at (None: the method's own settings)
+    point_index: int | None = None         # its index in the rate controller's ladder
 
 
 @dataclass
@@ -158,6 +172,8 @@ class ServerCounters:
     reference_requests: int = 0
     frames_encoded: int = 0
     encode_s_total: float = 0.0
+    reports: int = 0              # receive reports taken by the rate controller
+    frames_paced: int = 0         # frame starts the rate controller held back (the link was backed up)
 
 
 class ServerSession:
@@ -166,7 +182,9 @@ class ServerSession:
     Policy: a pose received while the encoder is idle starts a frame at once; poses received while it is busy
     coalesce, and the frame after it starts as soon as it finishes, for the newest pose (and no sooner than
     ``min_frame_interval_s`` after the one before). A reference request makes
-    the next frame self-contained, and so does a frame the send queue had to refuse.
+    the next frame self-contained, and so does a frame the send queue had to refuse. With a rate controller a
+    frame also waits while the controller says the link is backed up (:meth:`report_received` starts it when a
+    report shows the backlog gone, or the next pose does), and each frame is made at the point it chooses.
     """
 
     def __init__(self, config: ServerSessionConfig | None = None) -> None:
@@ -181,6 +199,13 @@ class ServerSession:
         self._pose_pending = False
         self._last_start: float | None = None
         self._last_traffic: float | None = None     # driver clock of the session's start / newest pose taken
+        self.rate = RateController(self.config.rate) if self.config.rate is not None else None
+        self.pose_interval_s: float | None = None   # running estimate of the time between poses
+        self._encoding_point: int | None = None      # ladder index of the frame being encoded
+        # (frame, ladder index) of the frames that may still be queued
+        self._queued_points: collections.deque = collections.deque(maxlen=self.config.queue_frames + 2)
+        self._popped_point: int | None = None
+        self._paced = False                          # the last start was held back by the rate controller
 
     # -- events
 
@@ -195,6 +220,10 @@ class ServerSession:
             self.counters.poses_ignored += 1
             return None
         latest = self.predictor.latest
+        if self._latest is not None:
+            dt = latest.t - self._latest[1]
+            self.pose_interval_s = dt if self.pose_interval_s is None else \
+                (1 - POSE_INTERVAL_EMA) * self.pose_interval_s + POSE_INTERVAL_EMA * dt
         self._latest = (float(now), latest.t, latest.position, latest.quat)
         self._last_traffic = float(now)
         self._pose_pending = True
@@ -214,17 +243,55 @@ class ServerSession:
         self.encode_estimate_s = (1 - ENCODE_EMA) * self.encode_estimate_s + ENCODE_EMA * encode_s
         if self.queue.push(frame, self_contained):
             self._want_reference = True          # a frame was refused: the next one must stand alone
+        if self.rate is not None:
+            self._queued_points.append((frame, self._encoding_point))
         return self._maybe_start(now)
+
+    def frame_sent(self, now: float, frame_id: int, size_bytes: int) -> None:
+        """The driver handed the frame :meth:`next_to_send` gave it last (id ``frame_id``, ``size_bytes`` of payload)
+        to the transport."""
+        if self.rate is not None:
+            self.rate.frame_sent(now, frame_id, size_bytes, self._popped_point)
+
+    def report_received(self, now: float, entries) -> EncodeFrame | None:
+        """The client's receive report (``(frame_id, bytes, t_arrive)`` entries, arrival on the client's clock)
+        arrived: the rate controller takes it, and a frame held back for the link may start now."""
+        if self.rate is None:
+            return None
+        self.counters.reports += 1
+        self.rate.report(now, entries, self.frame_interval_s())
+        return self._maybe_start(now)
+
+    def frame_interval_s(self) -> float:
+        """The time between frames the rate controller plans for: the pose interval or the encode time, whichever
+        is longer (and no less than the flood guard's interval)."""
+        interval = max(self.pose_interval_s or 0.0, self.encode_estimate_s, self.config.min_frame_interval_s)
+        return interval if interval > 0 else 1.0 / 30.0
+
+    @property
+    def point(self) -> OperatingPoint | None:
+        """The operating point the next frame is made at (None: the method's own settings)."""
+        return self.rate.point if self.rate is not None else self.config.point
+
+    def min_interval_s(self) -> float:
+        """The least time between two frame starts: the flood guard's, or the current point's frame rate cap."""
+        point = self.point
+        return max(self.config.min_frame_interval_s, 1.0 / point.fps if point is not None else 0.0)
 
     def timer(self) -> float | None:
         """When :meth:`handle_timer` must be called next (driver clock), or None: a pose waits for the flood
-        guard's interval while the encoder is idle."""
-        if self._encoding or not self._pose_pending or self._last_start is None:
+        guard's interval (or the operating point's frame rate) while the encoder is idle. A pose the rate controller
+        holds back waits for a report or the next pose instead (no timer)."""
+        if self._encoding or not self._pose_pending or self._last_start is None or self._paced:
             return None
-        return self._last_start + self.config.min_frame_interval_s
+        return self._last_start + self.min_interval_s()
 
     def handle_timer(self, now: float) -> EncodeFrame | None:
-        """The time :meth:`timer` named has come."""
+        """The time :meth:`timer` named has come (a driver whose clock rounds past it by a microsecond or less
+        starts the frame at the time named, so every driver decides alike)."""
+        t = self.timer()
+        if t is not None and abs(now - t) <= 1e-6:
+            now = t
         return self._maybe_start(now)
 
     def idle_deadline(self) -> float | None:
@@ -236,7 +303,10 @@ class ServerSession:
 
     def next_to_send(self) -> Any | None:
         """The next frame for the transport, in order (None when the queue is empty)."""
-        return self.queue.pop()
+        frame = self.queue.pop()
+        if frame is not None and self.rate is not None:
+            self._popped_point = next((i for f, i in self._queued_points if f is frame), None)
+        return frame
 
     # -- state
 
@@ -254,8 +324,13 @@ class ServerSession:
     def _maybe_start(self, now: float) -> EncodeFrame | None:
         if self._encoding or not self._pose_pending:
             return None
-        if self._last_start is not None and now < self._last_start + self.config.min_frame_interval_s:
+        if self._last_start is not None and now < self._last_start + self.min_interval_s() - 1e-9:
             return None
+        if self.rate is not None and not self.rate.may_start(now, self.frame_interval_s()):
+            self.counters.frames_paced += 1
+            self._paced = True
+            return None
+        self._paced = False
         self._pose_pending = False
         self._last_start = now
         return self._start(now)
@@ -272,11 +347,15 @@ class ServerSession:
                 position, quat = predicted
         reference, self._want_reference = self._want_reference, False
         self._encoding = True
+        point, index = self.config.point, None
+        if self.rate is not None:
+            index = self._encoding_point = self.rate.choose(now, self.frame_interval_s())
+            point = self.rate.ladder[index]
         # a decision is always a pose the wire format accepts (the client checks the frame's pose as we check
         # the client's): extrapolation past the edge of the range stops at it
         position = np.clip(np.asarray(position, np.float64), -MAX_POSITION_M, MAX_POSITION_M)
         display_t = float(np.clip(display_t, -MAX_TIME_S, MAX_TIME_S))
-        return EncodeFrame(position, np.asarray(quat, np.float64), display_t, reference, float(now))
+        return EncodeFrame(position, np.asarray(quat, np.float64), display_t, reference, float(now), point, index)
 
 
 # ------------------------------------------------------------------------------------------------ client
@@ -288,10 +367,19 @@ class RequestReference:
     reason: str
 
 
+@dataclass(frozen=True)
+class SendReport:
+    """Decision: tell the server these frames arrived (``(frame_id, bytes, t_arrive)`` entries; a
+    :class:`quadcast.protocol.messages.ReceiveReport`)."""
+
+    entries: tuple
+
+
 @dataclass
 class ClientCounters:
     """What a client session received and decided."""
 
+    frames_arrived: int = 0
     frames_received: int = 0
     frames_applied: int = 0
     frames_rejected: int = 0
@@ -324,10 +412,21 @@ class ClientSession:
 
     # -- events
 
+    def frame_arrived(self, now: float, frame_id: int, size_bytes: int) -> SendReport:
+        """A frame's last byte arrived off the network at ``now`` (the clock the client's poses carry), before
+        it is decoded or applied: report it to the server at once (its rate controller times the link with it)."""
+        self.counters.frames_arrived += 1
+        return SendReport(((int(frame_id), int(size_bytes), float(now)),))
+
     def connected(self, now: float) -> None:
         """A (re)connection: nothing received before it can be continued."""
         self.awaiting_self_contained = True
         self.last_frame_id = None
+
+    def announce_reports(self) -> SendReport:
+        """What a client that reports arrivals sends right after it connects: an empty report, which tells the
+        server's rate controller so (a slow first frame is then not taken for a client that never reports)."""
+        return SendReport(())
 
     def frame_received(self, now: float, frame_id: int, self_contained: bool) -> bool:
         """A frame arrived; returns True to apply it, False to skip it."""

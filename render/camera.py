@@ -205,6 +205,18 @@ class Camera:
             raise ValueError(f"Camera.from_array: expected 16 numbers, got {a.size}")
         return cls(Pose(a[:3], a[3:7]), Frustum(*a[7:13]), int(width), int(height))
 
+    def eccentricity_deg(self, gaze=(0.0, 0.0, -1.0)) -> np.ndarray:
+        """(height, width) float32: the angle in degrees between each pixel centre's view ray and ``gaze`` (a
+        view-space direction; default the view axis), top row first."""
+        l, r, b, t = self.frustum.unit_extents
+        x = l + (r - l) * (np.arange(self.width) + 0.5) / self.width
+        y = t - (t - b) * (np.arange(self.height) + 0.5) / self.height
+        g = np.asarray(gaze, np.float64)
+        g = g / np.linalg.norm(g)
+        xx, yy = np.meshgrid(x, y)
+        cos = (xx * g[0] + yy * g[1] - g[2]) / np.sqrt(xx * xx + yy * yy + 1.0)
+        return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).astype(np.float32)
+
     def project(self, points_world: np.ndarray) -> np.ndarray:
         """World points (N, 3) -> pixel coordinates (N, 2), x right and y down from the top-left corner."""
         p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)

@@ -9,9 +9,10 @@ a worker *thread* -- ``worker="thread"``, kept for comparison, see ``quadcast.cl
 it renders.)
 
 Every decision is the session core's (:class:`quadcast.protocol.session.ServerSession`, which the virtual-time
-replay drives too): each pose and reference request goes into it; it says when to encode a frame and for which
-predicted pose and display time; encoded frames go through its bounded, chain-safe send queue to the socket. This
-module only carries those decisions out: one encode at a time on the worker, one sender.
+replay drives too): each pose, reference request and receive report goes into it; it says when to encode a frame,
+for which predicted pose and display time and (with ``adapt``, :mod:`quadcast.protocol.rate`) at which operating
+point; encoded frames go through its bounded, chain-safe send queue to the socket, and each one sent is told back
+to it. This module only carries those decisions out: one encode at a time on the worker, one sender.
 
 The method's server half comes from the ``make_server(name, renderer, config)`` the server is given (the registry
 :func:`quadcast.methods.make_server`; it must be picklable to reach a worker process).
@@ -48,10 +49,11 @@ import numpy as np
 
 from quadcast.protocol.admission import Admission, Refusal, ServerLimits, Ticket
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.frame import encode_frame_payload
+from quadcast.protocol.frame import encode_frame_payload, peek_frame_id
 from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
-                                        ReferenceRequest, Welcome, encode_message)
+                                        ReceiveReport, ReferenceRequest, Welcome, encode_message)
 from quadcast.protocol.methods import METHODS, MethodConfig
+from quadcast.protocol.rate import RateConfig, load_ladder
 from quadcast.protocol.session import EncodeFrame, ServerCounters, ServerSession, ServerSessionConfig
 from quadcast.render.camera import Pose
 from quadcast.render.worker import GLWorker, ProcessWorker, WorkerDied, WorkerError
@@ -98,6 +100,9 @@ class ServerConfig:
     worker: str = "process"             # where a session renders and encodes: "process" or "thread"
     worker_start_timeout: float = 60.0  # a session's worker must be ready (GL context, scene, server) by then
     spare_workers: int = 2              # worker processes kept booted for the next sessions (worker="process")
+    adapt: bool = False                 # rate controller: each frame's operating point from the receive reports
+    target_mbps: float | None = None    # the rate controller's ceiling (implies adapt)
+    ladder: str | None = None           # the operating points (default: the measured ladder shipped)
 
     def __post_init__(self) -> None:
         if self.worker not in ("process", "thread"):
@@ -117,6 +122,8 @@ class ServerConfig:
         if self.tls_key is not None and self.tls_cert is None:
             raise ValueError("--tls-key needs --tls-cert")
         self.limits()                    # ValueError naming a bad limit
+        self._rate = RateConfig(load_ladder(self.ladder), self.target_mbps) \
+            if self.adapt or self.target_mbps is not None else None      # ValueError / LadderError: bad ladder
         check_bind(self.host, self.token, tls=self.tls_cert is not None,
                    allow_plaintext_token=self.allow_plaintext_token)
 
@@ -134,7 +141,8 @@ class ServerConfig:
         """The session core's settings: the client's clock is estimated from its poses."""
         return ServerSessionConfig(predict=self.predict, downlink_s=self.lead_ms / 1e3,
                                    max_prediction_s=self.max_prediction_s, queue_frames=self.queue_frames,
-                                   min_frame_interval_s=1.0 / self.max_frame_hz, idle_timeout_s=self.idle_timeout)
+                                   min_frame_interval_s=1.0 / self.max_frame_hz, idle_timeout_s=self.idle_timeout,
+                                   rate=self._rate)
 
 
 def check_bind(host: str, token: str, tls: bool = False, allow_plaintext_token: bool = False) -> None:
@@ -194,9 +202,11 @@ class SessionPipeline:
                               viewcell_radius=spec.viewcell_m, reference_every=spec.reference_every, crf=spec.crf)
         self.server = spec.make_server(spec.method, self.renderer, config)
 
-    def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool]:
+    def encode(self, position, quat, t: float, reference: bool, point=None) -> tuple[bytes, bool]:
         if reference:
             self.server.request_reference()
+        if point is not None:
+            self.server.apply_operating_point(point)
         payload = self.server.encode(Pose(np.asarray(position, np.float64), np.asarray(quat, np.float64)), t)
         return encode_frame_payload(payload), payload.self_contained
 
@@ -223,10 +233,10 @@ class SessionHost:
         self.pipeline = SessionPipeline(spec, scene=self.scene)
         return os.getpid()
 
-    def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool]:
+    def encode(self, position, quat, t: float, reference: bool, point=None) -> tuple[bytes, bool]:
         if self.pipeline is None:
             raise RuntimeError("SessionHost.encode: no pipeline built")
-        return self.pipeline.encode(position, quat, t, reference)
+        return self.pipeline.encode(position, quat, t, reference, point)
 
     def close(self) -> None:
         if self.pipeline is not None:
@@ -252,8 +262,8 @@ class _ThreadWorker:
                                                timeout)
         return self.pid
 
-    async def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool]:
-        return await self.gl.call(self.pipeline.encode, position, quat, t, reference)
+    async def encode(self, position, quat, t: float, reference: bool, point=None) -> tuple[bytes, bool]:
+        return await self.gl.call(self.pipeline.encode, position, quat, t, reference, point)
 
     @property
     def death(self) -> str | None:
@@ -291,8 +301,9 @@ class _ProcessWorker:
         self.pid = await asyncio.wait_for(self.proc.call("build", self.spec), timeout)
         return self.pid
 
-    async def encode(self, position, quat, t: float, reference: bool) -> tuple[bytes, bool]:
-        return await self.proc.call("encode", np.asarray(position), np.asarray(quat), float(t), bool(reference))
+    async def encode(self, position, quat, t: float, reference: bool, point=None) -> tuple[bytes, bool]:
+        return await self.proc.call("encode", np.asarray(position), np.asarray(quat), float(t), bool(reference),
+                                    point)
 
     @property
     def death(self) -> str | None:
@@ -312,6 +323,14 @@ class _ProcessWorker:
 
 
 # --------------------------------------------------------------------------------------------- session
+
+_WAKE = object()
+"""What the reader puts in the encoder's queue to make it look at the core's timer again."""
+
+
+def _fmt(value: float | None, scale: float = 1.0) -> str:
+    return "?" if value is None else f"{value * scale:.1f}"
+
 
 class SessionError(Exception):
     """Ends a session with an ErrorMessage(code, text)."""
@@ -334,10 +353,11 @@ class Session:
         self.cfg = server.config
         self.core = ServerSession(self.cfg.session_config())
         self.worker: _ThreadWorker | _ProcessWorker | None = None
-        self._decisions: asyncio.Queue[EncodeFrame] = asyncio.Queue()
+        self._decisions: asyncio.Queue = asyncio.Queue()        # EncodeFrame decisions, or _WAKE
         self._queued = asyncio.Event()
         self.frames_sent = 0
         self.bytes_sent = 0
+        self._point = None
 
     # -- handshake
 
@@ -426,9 +446,10 @@ class Session:
             c, q = self.core.counters, self.core.queue.counters
             self.server.session_ended(c)
             log.info("session %d ended: %d poses, %d frames encoded (mean %.0f ms each), %d sent (%d bytes), "
-                     "%d reference requests, queue dropped %d stale + %d new", self.id, c.poses, c.frames_encoded,
+                     "%d reference requests, queue dropped %d stale + %d new, %d receive reports, %d frame starts "
+                     "held back for the link", self.id, c.poses, c.frames_encoded,
                      c.encode_s_total * 1e3 / max(c.frames_encoded, 1), self.frames_sent, self.bytes_sent,
-                     c.reference_requests, q.dropped_stale, q.dropped_new)
+                     c.reference_requests, q.dropped_stale, q.dropped_new, c.reports, c.frames_paced)
 
     async def _send_error(self, code: int, text: str, retry_after_s: float = 0.0) -> None:
         try:
@@ -467,16 +488,25 @@ class Session:
                     decision = self.core.pose_received(loop.time(), msg.t_client, msg.position, msg.quat)
                 except ValueError as exc:
                     raise ProtocolError(f"PoseUpdate: {exc}") from None
-                if decision is not None:
-                    self._decisions.put_nowait(decision)
+                self._decide(decision)
             elif isinstance(msg, ReferenceRequest):
                 self.core.reference_requested(loop.time())
                 log.info("session %d: reference requested (%s)", self.id, msg.reason)
+            elif isinstance(msg, ReceiveReport):
+                self._decide(self.core.report_received(loop.time(), msg.entries))
             elif isinstance(msg, ErrorMessage):
                 log.warning("session %d: client error %d: %s", self.id, msg.code, msg.text)
                 return
             else:
                 raise SessionError(ErrorCode.PROTOCOL, f"unexpected {type(msg).__name__} from a client")
+
+    def _decide(self, decision: EncodeFrame | None) -> None:
+        """Hand a decision to the encoder; without one, wake it if the core's timer is now set (a pose that waits
+        for the flood guard or its point's frame rate while the encoder is idle)."""
+        if decision is not None:
+            self._decisions.put_nowait(decision)
+        elif not self.core.encoding and self.core.timer() is not None:
+            self._decisions.put_nowait(_WAKE)
 
     async def _watch_worker(self) -> None:
         """End the session as soon as its worker process dies, even while no encode is under way."""
@@ -487,7 +517,7 @@ class Session:
         """One frame from the worker, as the wire message that carries it (the worker's bytes, not re-encoded)."""
         try:
             data, self_contained = await self.worker.encode(decision.position, decision.quat, decision.display_t,
-                                                            decision.reference)
+                                                            decision.reference, decision.point)
         except WorkerDied as exc:
             raise SessionError(ErrorCode.INTERNAL, f"session worker died: {exc}") from None
         except WorkerError as exc:
@@ -495,7 +525,8 @@ class Session:
         return Frame(data), self_contained
 
     async def _encoder(self) -> None:
-        """Run the core's encode decisions one at a time; wake for its flood-guard timer."""
+        """Run the core's encode decisions one at a time; wake for its timer (flood guard, a point's frame rate),
+        and look at the timer again whenever the reader says an event may have set it (:data:`_WAKE`)."""
         loop = asyncio.get_running_loop()
         while True:
             deadline = self.core.timer()
@@ -504,7 +535,7 @@ class Session:
                 decision = await asyncio.wait_for(self._decisions.get(), timeout)
             except asyncio.TimeoutError:
                 decision = self.core.handle_timer(loop.time())
-            while decision is not None:
+            while decision is not None and decision is not _WAKE:
                 frame, self_contained = await self._encode(decision)
                 now = loop.time()
                 decision = self.core.frame_encoded(now, frame, self_contained, now - decision.started)
@@ -519,8 +550,14 @@ class Session:
                 continue
             before = self.channel.bytes_out
             await self.channel.send(frame)
+            self.core.frame_sent(asyncio.get_running_loop().time(), peek_frame_id(frame.payload), len(frame.payload))
             self.frames_sent += 1
             self.bytes_sent += self.channel.bytes_out - before
+            if self.core.rate is not None and self.core.rate.point is not self._point:
+                self._point = self.core.rate.point
+                log.info("session %d: operating point %s (capacity %s Mbit/s, queue %s ms)", self.id,
+                         self._point.name, _fmt(self.core.rate.state.capacity_mbps),
+                         _fmt(self.core.rate.state.queue_delay_s, 1e3))
 
 
 # ---------------------------------------------------------------------------------------------- server

@@ -48,6 +48,12 @@ class LayerRenderer:
         self.hidden = [GBuffer(self.ctx, hw, hh) for _ in range(layers - 1)]
         self.peel = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl")
 
+    def use_hidden_layers(self, count: int) -> None:
+        """Render only the first ``count`` hidden layers (of those allocated) from the next frame on."""
+        if not hasattr(self, "_allocated"):
+            self._allocated = list(self.hidden)
+        self.hidden = self._allocated[:max(0, int(count))]
+
     def hidden_camera(self, camera: Camera) -> Camera:
         return resized(camera, *self.hidden_size)
 

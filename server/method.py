@@ -16,6 +16,14 @@ class MethodServer(ABC):
     def encode(self, pose: Pose, t: float) -> FramePayload:
         """Render and encode the frame for `pose` at scene time `t` (seconds). `payload.stats` holds ms per stage."""
 
+    def apply_operating_point(self, point) -> bool:
+        """Make the next frames at ``point`` (a :class:`quadcast.protocol.rate.OperatingPoint`), switching only where
+        the stream stays decodable. Returns False when the method has no such knobs (the default: it ignores it)."""
+        return False
+
+    def set_gaze(self, gaze) -> None:
+        """The viewer's gaze direction (view space) for the next frames (methods without foveation ignore it)."""
+
     def request_reference(self) -> None:
         """The client lost its reference state: make the next frame self-contained (default: every frame is)."""
 

@@ -1,8 +1,10 @@
 #version 430
-// Gathering (QUASAR 3.2.3): append every valid entry of one Quad Map to the output list.
+// Gathering (QUASAR 3.2.3): append every valid entry of one Quad Map to the output list. A quad whose offsets
+// are all below delta_flatten (grown by the fovea scale away from the gaze, fovea.glsl) is flattened.
 layout(local_size_x = 8, local_size_y = 8) in;
 #include "quad.glsl"
 #include "quad_entry.glsl"
+#include "fovea.glsl"
 
 struct GatheredQuad {     // the layout render/quadmesh.py's quads_to_gpu writes
     uvec4 head;           // x, y, size_log2, flattened
@@ -25,7 +27,8 @@ void main() {
     uint i = atomicAdd(count, 1u);
     if (i >= u_capacity) return;
     vec4 m = max(max(abs(e.off[0]), abs(e.off[1])), max(abs(e.off[2]), abs(e.off[3])));
-    bool flattened = max(max(m.x, m.y), max(m.z, m.w)) < u_delta_flatten;
+    float fs = fovea_scale((vec2(p) + 0.5) * float(1 << u_level));
+    bool flattened = max(max(m.x, m.y), max(m.z, m.w)) < u_delta_flatten * fs;
     GatheredQuad g;
     g.head = uvec4(uvec2(p << u_level), uint(u_level), flattened ? 1u : 0u);
     g.normal_depth = e.plane;

@@ -3,16 +3,19 @@
 // (plane-equation distance < delta_sim), or, in the first coarse passes, when they have no depth discontinuity
 // (normalised centre depths within delta_max). Merged children are cleared; unmerged ones mark their parent so
 // no larger quad covers them. Offsets are recomputed against the averaged plane from the children's corners.
+// Foveated (fovea.glsl): away from the gaze, delta_sim grows by the fovea scale and the coarse passes go on
+// log2(scale) levels further.
 layout(local_size_x = 8, local_size_y = 8) in;
 #include "quad.glsl"
 #include "quad_entry.glsl"
+#include "fovea.glsl"
 
 layout(std430, binding = 0) buffer QuadMapIn { QuadEntry qin[]; };
 layout(std430, binding = 1) writeonly buffer QuadMapOut { QuadEntry qout[]; };
 uniform ivec2 u_in_size;
 uniform ivec2 u_out_size;
 uniform int u_out_level;       // output quads span 2^u_out_level pixels
-uniform bool u_coarse;
+uniform int u_coarse_passes;   // levels up to this one also merge continuous quads
 uniform float u_delta_sim;
 uniform float u_delta_max;
 uniform float u_max_angle;
@@ -49,12 +52,15 @@ void main() {
         eq[c] = vec4(child[c].plane.xyz, plane_d(child[c].plane.xyz, centre, child[c].plane.w));
         z[c] = normalized_depth(child[c].plane.w);
     }
+    float fs = fovea_scale((vec2(p) + 0.5) * child_size * 2.0);
+    float delta_sim = u_delta_sim * fs;
+    bool coarse = u_out_level <= u_coarse_passes + int(floor(log2(fs)));
     bool similar = true, continuous = true;
     for (int a = 0; a < 4; ++a) for (int b = a + 1; b < 4; ++b) {
-        similar = similar && distance(eq[a], eq[b]) < u_delta_sim;
+        similar = similar && distance(eq[a], eq[b]) < delta_sim;
         continuous = continuous && abs(z[a] - z[b]) < u_delta_max;
     }
-    if (!(similar || (u_coarse && continuous))) { qout[out_index] = m; return; }
+    if (!(similar || (coarse && continuous))) { qout[out_index] = m; return; }
 
     vec4 avg = (eq[0] + eq[1] + eq[2] + eq[3]) * 0.25;
     float len_n = length(avg.xyz);

@@ -36,6 +36,19 @@ class QuadParams:
     max_angle_deg: float = 80.0    # normals are kept within this angle of the view ray
     sky: bool = True               # pixels with no geometry get far, camera-facing quads (the sky's colour)
     max_depth: float = 0.0         # > 0: geometry farther than this (m, view depth) gets no quads (the far field)
+    # foveation (fovea.glsl, quadcast.protocol.rate.fovea_scale): delta_sim, delta_flatten and the coarse passes
+    # grow with eccentricity from `gaze` (a view-space direction) beyond fovea_deg; fovea_sigma_deg 0 = uniform
+    fovea_deg: float = 10.0
+    fovea_sigma_deg: float = 0.0
+    fovea_gamma: float = 1.0
+    fovea_max_scale: float = 8.0
+    gaze: tuple[float, float, float] = (0.0, 0.0, -1.0)
+
+    def fovea_uniforms(self) -> dict:
+        g = np.asarray(self.gaze, np.float64)
+        g = g / max(np.linalg.norm(g), 1e-12)
+        return {"u_fovea": (math.radians(self.fovea_deg), math.radians(self.fovea_sigma_deg), self.fovea_gamma,
+                            self.fovea_max_scale), "u_gaze": tuple(map(float, g))}
 
     def relaxed(self, factor: float = 10.0, coarse_passes: int = 4) -> "QuadParams":
         """Hidden layers and wide FOV: thresholds ×factor, one more coarse pass (QUASAR §4.1.2)."""
@@ -140,8 +153,8 @@ class QuadGenerator:
             self.maps[level - 1].bind_to_storage_buffer(0)
             self.maps[level].bind_to_storage_buffer(1)
             set_uniforms(prog, u_in_size=(iw, ih), u_out_size=(ow, oh), u_out_level=level,
-                         u_coarse=level <= params.coarse_passes, u_delta_sim=params.delta_sim,
-                         u_delta_max=params.delta_max, u_max_angle=max_angle)
+                         u_coarse_passes=params.coarse_passes, u_delta_sim=params.delta_sim,
+                         u_delta_max=params.delta_max, u_max_angle=max_angle, **params.fovea_uniforms())
             prog.run((ow + 7) // 8, (oh + 7) // 8)
             ctx.memory_barrier()
         ctx.finish()
@@ -156,7 +169,7 @@ class QuadGenerator:
             w, h = self.sizes[level]
             self.maps[level].bind_to_storage_buffer(0)
             set_uniforms(prog, u_map_size=(w, h), u_level=level, u_capacity=self.capacity,
-                         u_delta_flatten=params.delta_flatten)
+                         u_delta_flatten=params.delta_flatten, **params.fovea_uniforms())
             prog.run((w + 7) // 8, (h + 7) // 8)
             ctx.memory_barrier()
         count = min(int(np.frombuffer(self.counter.read(), np.uint32)[0]), self.capacity)

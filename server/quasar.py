@@ -20,6 +20,7 @@ from quadcast.server.layers import AtlasComposer, AtlasLayout, LayerRenderer, wi
 from quadcast.server.method import MethodServer
 from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings, quad_stats
 from quadcast.codec.encoder import AtlasEncoder, VideoSettings
+from quadcast.protocol.rate import OperatingPoint
 
 
 @dataclass
@@ -74,10 +75,6 @@ class QuasarServer(MethodServer):
         probe = wide_camera(self.camera_for(Pose([0, 0, 0])), s.wide_fovy_deg, s.wide_scale)
         self.layout = AtlasLayout.for_view(s.width, s.height, s.layers - 1, (probe.width, probe.height),
                                            s.hidden_scale, s.far_size)
-        # With a far field, geometry beyond the split gets no quads (the far field shows it).
-        split = dict(max_depth=s.far_split_m) if s.far_field and s.far_split_m > 0 else {}
-        self.visible_params = replace(s.visible, **split)
-        self.hidden_params = replace(s.hidden, **split)
         far = self.camera_for(Pose([0, 0, 0])).frustum.far
         self.far_field = FarField(renderer, s.far_size, s.far_block, 0.9 * far) if s.far_field else None
         hidden_size = self.layout.hidden[0][2:] if self.layout.hidden else (s.width, s.height)
@@ -101,6 +98,22 @@ class QuasarServer(MethodServer):
         self.frames_since_reference = 0
         self._reference_time = 0.0
         self._force_reference = True
+        self.point: OperatingPoint | None = None      # the operating point applied last (None: the settings as given)
+
+    def _split(self, params: QuadParams) -> QuadParams:
+        """With a far field and a split distance, geometry beyond the split gets no quads (the far field shows it)."""
+        s = self.s
+        return replace(params, max_depth=s.far_split_m) if s.far_field and s.far_split_m > 0 else params
+
+    @property
+    def visible_params(self) -> QuadParams:
+        """The visible layer's quad parameters: the settings' (an operating point's, once one is applied)."""
+        return self._split(self.s.visible)
+
+    @property
+    def hidden_params(self) -> QuadParams:
+        """The hidden layers' and wide view's quad parameters."""
+        return self._split(self.s.hidden)
 
     def generator_for(self, width: int, height: int) -> QuadGenerator:
         """One quad generator per layer size (they hold the Quad Maps)."""
@@ -113,6 +126,59 @@ class QuasarServer(MethodServer):
 
     def request_reference(self) -> None:
         self._force_reference = True
+
+    def apply_operating_point(self, point: OperatingPoint) -> bool:
+        """Make the next frames at ``point`` (see :class:`quadcast.protocol.rate.OperatingPoint`). Every knob keeps
+        the atlas size. Quad thresholds, view cell, hidden layers and reference interval take effect with the next
+        frame (each frame's quads stand on their own); a new CRF restarts the H.264 stream, so the next frame is a
+        reference frame (an IDR); atlas foveation needs nothing from the stream."""
+        from quadcast.server.foveation import AtlasFoveation, FoveatedEncoder
+        if self.point is not None and self.point.same_settings(point):
+            self.point = point
+            return True
+        if not hasattr(self, "_base_settings"):
+            self._base_settings = self.s
+        base, q = self._base_settings, point.quad_scale
+        fovea = dict(fovea_deg=point.fovea_deg, fovea_sigma_deg=point.fovea_sigma_deg, fovea_gamma=point.fovea_gamma,
+                     fovea_max_scale=point.fovea_max_scale)
+
+        def scaled(params, coarse):
+            return replace(params, delta_sim=params.delta_sim * q, delta_flatten=params.delta_flatten * q,
+                           coarse_passes=coarse, gaze=self.s.visible.gaze, **fovea)
+        video = replace(base.video, crf=point.crf)
+        restart = video != self.s.video
+        self.s = replace(self.s, visible=scaled(base.visible, point.coarse_passes),
+                         hidden=scaled(base.hidden, point.coarse_passes + 1), viewcell_radius=point.viewcell_m,
+                         reference_every=point.reference_every, video=video)
+        self.layer_renderer.use_hidden_layers(min(point.hidden_layers, base.layers - 1))
+        if restart:
+            self.encoder.close()
+            self.encoder = AtlasEncoder(self.layout.width, self.layout.height, video)
+            self._force_reference = True
+        elif isinstance(self.encoder, FoveatedEncoder):
+            self.encoder = self.encoder.encoder
+        if point.foveated and point.fovea_atlas > 1:
+            from quadcast.server.layers import resized
+            main = self.camera_for(Pose([0, 0, 0]))
+            wide = wide_camera(main, base.wide_fovy_deg, base.wide_scale)
+            L = self.layout
+            views = [(L.reference, main), (L.current, main), (L.wide, wide)]
+            views += [(rect, resized(main, *rect[2:])) for rect in L.hidden]
+            foveation = AtlasFoveation(views, point, self.s.visible.gaze)
+            if foveation.active:
+                self.encoder = FoveatedEncoder(self.encoder, foveation)
+        self.point = point
+        return True
+
+    def set_gaze(self, gaze) -> None:
+        """The viewer's gaze, a view-space direction, for the next frames: foveation centres on it."""
+        from quadcast.server.foveation import FoveatedEncoder
+        g = tuple(float(v) for v in gaze)
+        if g == self.s.visible.gaze:
+            return
+        self.s = replace(self.s, visible=replace(self.s.visible, gaze=g), hidden=replace(self.s.hidden, gaze=g))
+        if isinstance(self.encoder, FoveatedEncoder):
+            self.encoder.foveation = self.encoder.foveation.with_gaze(g)
 
     def _needs_reference(self, camera: Camera) -> bool:
         ref = self.reference_camera

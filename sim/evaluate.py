@@ -9,11 +9,21 @@ display where the client showed no content of its own -- nothing drawn, or only 
 ``holes_empty`` + ``holes_smeared``; ``holes_interior`` is the part not touching the display's border: cracks and
 disocclusions rather than what lies beyond the rendered frame); the summary has their mean/max and
 ``black_frames``, the display frames shown before the first payload plus the shown frames with no pixel drawn.
+
+FLIP is reported over the whole frame (`flip`) and over the central 20 degrees around the gaze point (`flip_fovea`):
+the view centre, or where a gaze trace (`gaze`, sim/gaze.py) says the viewer looks at that display time. With a rate limit (`rate_mbit`, or a Mahimahi `rate_trace`), a rate controller (`adapt`,
+`target_mbps` as its ceiling) or a fixed operating point (`point`), the summary also has `age_ms` (mean frame age
+over every display tick: the display time minus the time the shown frame was predicted for), `age_bound_ms` (the
+link latency plus two server frame intervals) and a `timeline`: every frame sent (time, bytes, arrival, operating
+point, the controller's capacity estimate), every display tick (frame age, the shown frame's point) and the link's
+capacity; report.html plots it. With a rate trace, `steps` lists the link's steps and how soon after each the
+frame age was back under its bound for good (`recovered_s`).
 """
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+import math
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,12 +35,15 @@ from quadcast.methods import make_client, make_server
 from quadcast.protocol.frame import residual_to_reference_bytes
 from quadcast.protocol.methods import MethodConfig
 from quadcast.protocol.prediction import DEFAULT_PREDICTOR, PredictorSettings
+from quadcast.protocol.rate import Ladder, OperatingPoint, RateConfig, load_ladder
 from quadcast.sim.metrics import compare
 from quadcast.sim.replay import DisplayedFrame, ReplayConfig, replay
 from quadcast.sim.report import FrameImages, format_figure, write_frames_csv, write_report_html, write_summary_json
 
 WALLCLOCK_KEYS = ("server_ms", "client_ms")
 WORST_FRAMES = 3
+FOVEA_RADIUS_DEG = 10.0
+"""`flip_fovea` is FLIP over the pixels within this many degrees of the gaze point (the central 20 degrees)."""
 
 
 @dataclass
@@ -55,6 +68,21 @@ class EvalSpec:
     predictor: PredictorSettings | None = None    # None: quadcast.protocol.prediction.DEFAULT_PREDICTOR
     crf: float | None = None       # None: the method's own (quadcast.protocol.methods.DEFAULT_CRF)
     reference_every: int = 5
+    rate_trace: str | None = None  # a Mahimahi trace file or builtin:NAME for the downlink (instead of rate_mbit)
+    adapt: bool = False            # the server's rate controller (quasar)
+    target_mbps: float | None = None   # the controller's ceiling (implies adapt)
+    point: str | OperatingPoint | None = None   # a fixed operating point: a ladder point's name or "key=value,..."
+    ladder: str | None = None      # the ladder file (default: the measured one shipped with quadcast)
+    gaze: str | None = None        # a gaze trace (sim/gaze.py): foveation and flip_fovea around it, not the centre
+
+
+def resolve_point(spec: str | OperatingPoint, ladder: Ladder) -> OperatingPoint:
+    """An operating point: as given, a ladder point by name, or ``key=value,...`` (:meth:`OperatingPoint.parse`)."""
+    if isinstance(spec, OperatingPoint):
+        return spec
+    if "=" in spec:
+        return OperatingPoint.parse(spec)
+    return ladder[ladder.index(spec)]
 
 
 def _stats(values) -> dict:
@@ -75,8 +103,11 @@ class _Scorer:
     Frames shown before the first payload arrived (``frame_id`` < 0) are black for every method: they are not
     scored (nor kept as worst frames)."""
 
-    def __init__(self, renderer: DeferredRenderer, width: int, height: int, fovy: float, stereo=None):
+    def __init__(self, renderer: DeferredRenderer, width: int, height: int, fovy: float, stereo=None, gaze=None):
         self.renderer, self.width, self.height, self.fovy = renderer, width, height, fovy
+        self.gaze = gaze          # a GazeTrace, or None: the view centre
+        self._view = Camera.perspective(Pose([0, 0, 0]), width, height, fovy)
+        self.fovea = self._view.eccentricity_deg() <= FOVEA_RADIUS_DEG
         self.records: list[dict] = []
         self.worst: list[tuple[float, FrameImages]] = []
         self.stereo = stereo
@@ -104,7 +135,10 @@ class _Scorer:
         camera = Camera.perspective(pose, self.width, self.height, self.fovy)
         gt = self.renderer.render_color(camera, t)
         s = compare(gt, image)
-        rec = {"frame": index, "t": t, "flip": s.flip, "ssim": s.ssim, "psnr": s.psnr, **extra}
+        fovea = self.fovea if self.gaze is None else \
+            self._view.eccentricity_deg(self.gaze.direction_at(t)) <= FOVEA_RADIUS_DEG
+        rec = {"frame": index, "t": t, "flip": s.flip, "flip_fovea": float(np.mean(s.flip_map[fovea])),
+               "ssim": s.ssim, "psnr": s.psnr, **extra}
         self.records.append(rec)
         label = f"frame {index} (t={t:.2f} s) FLIP {s.flip:.3f}"
         if extra.get("holes") is not None:
@@ -131,6 +165,20 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
                          f"need {needed:.1f} s")
     if spec.every < 1 or spec.frames < 1:
         raise ValueError("--frames and --every must be >= 1")
+    adapt = spec.adapt or spec.target_mbps is not None
+    if (adapt or spec.point is not None) and spec.method != "quasar":
+        raise ValueError(f"--adapt / --target-mbps / --point: operating points are quasar's knobs; the "
+                         f"{spec.method} server has none")
+    if adapt and spec.point is not None:
+        raise ValueError("--point fixes the operating point; --adapt chooses it: give one of them")
+    if spec.rate_trace is not None and spec.rate_mbit is not None:
+        raise ValueError("--rate and --rate-trace both set the downlink's rate: give one of them")
+    from quadcast.sim.ratetrace import resolve_rate_trace
+    rate_trace = resolve_rate_trace(spec.rate_trace) if spec.rate_trace is not None else None
+    ladder = load_ladder(spec.ladder) if adapt or isinstance(spec.point, str) else None
+    from quadcast.sim.gaze import GazeTrace
+    gaze = GazeTrace.load(spec.gaze) if spec.gaze is not None else None
+    point = resolve_point(spec.point, ladder) if spec.point is not None else None
     renderer = DeferredRenderer(scene)
     cfg = MethodConfig(width=spec.width, height=spec.height, viewcell_radius=spec.viewcell_m,
                        reference_every=spec.reference_every, crf=spec.crf)
@@ -138,9 +186,10 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     client = make_client(spec.method, cfg, renderer.ctx)
     predictor = spec.predictor or DEFAULT_PREDICTOR
     rc = ReplayConfig(latency_ms=spec.latency_ms, jitter_ms=spec.jitter_ms, rate_mbit=spec.rate_mbit,
-                      loss=spec.loss, predict=spec.predict, predictor=predictor, seed=spec.seed)
+                      loss=spec.loss, predict=spec.predict, predictor=predictor, seed=spec.seed, rate_trace=rate_trace,
+                      rate=RateConfig(ladder, spec.target_mbps) if adapt else None, point=point, gaze=gaze)
     stereo = _stereo_scorer(renderer, spec, client) if spec.stereo else None
-    scorer = _Scorer(renderer, spec.width, spec.height, cfg.fovy_deg, stereo)
+    scorer = _Scorer(renderer, spec.width, spec.height, cfg.fovy_deg, stereo, gaze)
     bar = tqdm(total=spec.frames, desc=f"eval {spec.method}", unit="frame", disable=quiet, leave=False)
     client_ms: list[dict] = []
 
@@ -179,10 +228,79 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
         run.update(anchor=spec.anchor, start_s=spec.start)
     if spec.method == "quasar":
         run["residual_to_reference_bytes"] = residual_to_reference_bytes((kind, n) for kind, n, _ in totals.payloads)
+    if rate_trace is not None or spec.rate_mbit is not None or adapt or point is not None:
+        run.update(rate_run_figures(spec, totals, rc, point, scorer.records))
     summary = build_summary(spec.method, spec.scene, spec.trace, (spec.width, spec.height), scorer, client_ms, run)
     if out is not None:
         write_outputs(Path(out), summary, scorer.scored, scorer.worst_images)
     return summary
+
+
+def rate_run_figures(spec: EvalSpec, totals, rc: ReplayConfig, point: OperatingPoint | None,
+                     records: list[dict]) -> dict:
+    """The summary's figures of a rate-limited or adaptive run (see the module docstring); adds each scored
+    record's operating point (`point`, the ladder index of the frame shown) when there is a controller."""
+    interval_ms = 1e3 / rc.server_hz
+    ages = np.array([a for _, a, _ in totals.ages], np.float64)
+    sent = totals.sent
+    out = {"rate_trace": spec.rate_trace, "adapt": rc.rate is not None, "target_mbps": spec.target_mbps,
+           "point": point.to_dict() if point is not None else None,
+           "age_ms": float(np.nanmean(ages)) if np.isfinite(ages).any() else None,
+           "age_bound_ms": spec.latency_ms + 2 * interval_ms,
+           "frames_paced": totals.server.frames_paced}
+    by_id = {f.frame_id: f for f in sent}
+    timeline = {
+        "sent": {"t": [f.t_sent for f in sent], "frame_id": [f.frame_id for f in sent],
+                 "bytes": [f.bytes for f in sent], "t_arrive": [f.t_arrive for f in sent],
+                 "point": [f.point_index for f in sent], "capacity_mbps": [f.capacity_mbps for f in sent],
+                 "queue_delay_ms": [f.queue_delay_ms for f in sent]},
+        "display": {"t": [t for t, _, _ in totals.ages], "age_ms": [a for _, a, _ in totals.ages],
+                    "point": [by_id[i].point_index if i in by_id else None for _, _, i in totals.ages]},
+    }
+    end = totals.duration_s
+    if rc.rate_trace is not None:
+        t, mbps = rc.rate_trace.rate_mbit(0.0, end, 0.1)
+        timeline["link"] = {"t": t.tolist(), "mbps": mbps.tolist()}
+        out["steps"] = age_recovery(t, mbps, totals.ages, out["age_bound_ms"])
+    elif rc.rate_mbit is not None:
+        timeline["link"] = {"t": [0.0, end], "mbps": [rc.rate_mbit, rc.rate_mbit]}
+    if rc.rate is not None:
+        ladder = rc.rate.ladder
+        timeline["points"] = [p.name for p in ladder.points]
+        st = totals.rate
+        out["rate_controller"] = {"decreases": st.decreases, "increases": st.increases,
+                                  "final_point": ladder[st.index].name, "capacity_mbps": st.capacity_mbps,
+                                  "ladder": ladder.command or "(unnamed)"}
+        for r in records:
+            f = by_id.get(r.get("frame_id"))
+            r["point"] = f.point_index if f is not None else None
+    out["timeline"] = timeline
+    return out
+
+
+def age_recovery(t: np.ndarray, mbps: np.ndarray, ages: list, bound_ms: float, ratio: float = 1.5,
+                 window_s: float = 0.25) -> list[dict]:
+    """The link's steps (its capacity per window `t`/`mbps` changing by more than `ratio` from one window to the
+    next) and, for each, how soon after it the frame age was back under `bound_ms` for good (`recovered_s`: from
+    then on to the next step, the mean age over every `window_s` -- a frame's age grows while it is shown, so a
+    single display tick may pass the bound that the mean keeps) and the mean age from then on (`mean_age_ms`)."""
+    edges = [i for i in range(1, len(mbps)) if max(mbps[i], mbps[i - 1]) > ratio * min(mbps[i], mbps[i - 1])]
+    when = [float((t[i - 1] + t[i]) / 2) for i in edges]
+    ticks = np.array([tt for tt, _, _ in ages])
+    age = np.array([a for _, a, _ in ages], np.float64)
+    steps = []
+    for k, (i, at) in enumerate(zip(edges, when)):
+        until = min(when[k + 1] if k + 1 < len(when) else math.inf, float(ticks[-1]) + 1e-9)
+        starts = ticks[(ticks >= at) & (ticks + window_s <= until)]
+        means = np.array([np.nanmean(age[(ticks >= s0) & (ticks < s0 + window_s)]) for s0 in starts])
+        over = np.nonzero(~(means <= bound_ms))[0]
+        recovered = (float(starts[over[-1]] - at) + (ticks[1] - ticks[0])) if over.size else 0.0
+        if over.size and over[-1] == len(starts) - 1:
+            recovered = float(until - at)              # not back under the bound before the next step
+        after = (ticks >= at + recovered) & (ticks < until)
+        steps.append({"t": at, "from_mbps": float(mbps[i - 1]), "to_mbps": float(mbps[i]), "recovered_s": recovered,
+                      "mean_age_ms": float(np.nanmean(age[after])) if after.any() else None})
+    return steps
 
 
 def build_summary(method: str, scene: str, trace: str, size: tuple[int, int], scorer: "_Scorer",
@@ -196,7 +314,8 @@ def build_summary(method: str, scene: str, trace: str, size: tuple[int, int], sc
         "method": method, "scene": scene, "trace": trace, "size": f"{size[0]}x{size[1]}",
         "latency_ms": None, "jitter_ms": None, "rate_mbit": None, "loss": None, "viewcell_m": None,
         "display_frames": None, "every": None, "mbps": None, "mbps_video": None, "mbps_geometry": None,
-        "frames": len(scored), "flip": mean("flip"), "ssim": mean("ssim"), "psnr": mean("psnr"),
+        "frames": len(scored), "flip": mean("flip"), "flip_fovea": mean("flip_fovea"), "ssim": mean("ssim"),
+        "psnr": mean("psnr"),
         "pose_error_cm": _stats(r.get("pose_error_cm") for r in scored),
         "pose_error_deg": _stats(r.get("pose_error_deg") for r in scored),
         "holes": _stats(r.get("holes") for r in scored),
@@ -359,9 +478,11 @@ def format_summary(s: dict) -> str:
     f = format_figure
     return (f"{s['method']:>11s} {s.get('latency_ms', 0):>4g}±{s.get('jitter_ms', 0):<3g}ms vc {s['viewcell_m']:g} m: "
             f"{f(s['mbps'], '8.2f')} Mbps (video {f(s.get('mbps_video'), '.2f')}, geometry "
-            f"{f(s.get('mbps_geometry'), '.2f')})  FLIP {f(s['flip'], '.4f')}  SSIM {f(s['ssim'], '.4f')}  "
-            f"PSNR {f(s['psnr'], '.2f')} dB  holes {f(_pct((s.get('holes') or {}).get('mean')), '.2f')}% "
-            f"(max {f(_pct((s.get('holes') or {}).get('max')), '.1f')}%), {s.get('black_frames', 0)} black frames")
+            f"{f(s.get('mbps_geometry'), '.2f')})  FLIP {f(s['flip'], '.4f')} (fovea {f(s.get('flip_fovea'), '.4f')})"
+            f"  SSIM {f(s['ssim'], '.4f')}  PSNR {f(s['psnr'], '.2f')} dB  holes {f(_pct((s.get('holes') or {}).get('mean')), '.2f')}% "
+            f"(max {f(_pct((s.get('holes') or {}).get('max')), '.1f')}%), {s.get('black_frames', 0)} black frames"
+            + (f"  frame age {f(s['age_ms'], '.1f')} ms (bound {f(s.get('age_bound_ms'), '.1f')})"
+               if s.get("age_ms") is not None else ""))
 
 
 def _pct(fraction: float | None) -> float | None:

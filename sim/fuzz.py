@@ -61,11 +61,12 @@ class FuzzResult:
 # ------------------------------------------------------------------------------------------------ seeds
 
 def _seed_messages() -> list[bytes]:
-    from quadcast.protocol.messages import (Bye, ErrorMessage, Frame, Hello, PoseUpdate, ReferenceRequest, Welcome,
-                                            encode_message)
+    from quadcast.protocol.messages import (Bye, ErrorMessage, Frame, Hello, PoseUpdate, ReceiveReport,
+                                            ReferenceRequest, Welcome, encode_message)
     msgs = [Hello(1, "quasar", 320, 180, 60.0, "token"), Welcome(7, 30.0), PoseUpdate(3, 1.5, [0, 1.6, 0],
                                                                                       [0, 0, 0, 1]),
-            Frame(_seed_frames()[0]), ReferenceRequest("lost"), ErrorMessage(7, "busy", 2.5), Bye()]
+            Frame(_seed_frames()[0]), ReferenceRequest("lost"), ErrorMessage(7, "busy", 2.5), Bye(),
+            ReceiveReport(((5, 1200, 3.25), (6, 900, 3.27)))]
     return [encode_message(m) for m in msgs]
 
 

@@ -14,7 +14,10 @@ The model, per message:
 2. **Serialization** -- with ``rate_mbit`` set, the message queues behind
    earlier ones and leaves at
    ``depart = max(t, link_free_at) + size_bytes * 8 / (rate_mbit * 1e6)``.
-   Without a rate, ``depart = t``.
+   With a ``rate_trace`` (:class:`quadcast.sim.ratetrace.RateTrace`, Mahimahi's
+   format) instead, it leaves when the trace's delivery opportunities from
+   ``max(t, link_free_at)`` on have carried its bytes (trace time 0 is
+   ``trace_start``). Without either, ``depart = t``.
 3. **Propagation** -- ``arrive = depart + delay + jitter`` where jitter is
    uniform in ``[-J, +J]`` or normal with sigma ``J``, clipped so that
    ``arrive >= depart``.
@@ -44,6 +47,8 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
+
+from quadcast.sim.ratetrace import RateTrace
 
 __all__ = [
     "Delivery",
@@ -121,6 +126,10 @@ class LinkModel:
         later message overtake an earlier one.
     seed:
         Seed for the loss and jitter random streams.
+    rate_trace:
+        A Mahimahi bandwidth trace instead of a fixed ``rate_mbit`` (not both).
+    trace_start:
+        The link time (s) at which the trace's time 0 falls.
     """
 
     def __init__(
@@ -132,6 +141,8 @@ class LinkModel:
         loss: float = 0.0,
         reorder: bool = False,
         seed: int = 0,
+        rate_trace: RateTrace | None = None,
+        trace_start: float = 0.0,
     ) -> None:
         self.delay_ms = _require_finite_nonneg("delay_ms", delay_ms)
         self.jitter_ms = _require_finite_nonneg("jitter_ms", jitter_ms)
@@ -143,6 +154,15 @@ class LinkModel:
             if not math.isfinite(rate_mbit) or rate_mbit <= 0.0:
                 raise ValueError(f"rate_mbit must be a finite number > 0 or None, got {rate_mbit!r}")
         self.rate_mbit: float | None = rate_mbit
+        if rate_trace is not None and rate_mbit is not None:
+            raise ValueError("a link takes a fixed rate_mbit or a rate_trace, not both")
+        if rate_trace is not None and not isinstance(rate_trace, RateTrace):
+            raise ValueError(f"rate_trace must be a RateTrace, got {type(rate_trace).__name__}")
+        self.rate_trace: RateTrace | None = rate_trace
+        self.trace_start = float(trace_start)
+        if not math.isfinite(self.trace_start):
+            raise ValueError(f"trace_start must be finite, got {trace_start!r}")
+        self._trace_cursor: tuple[int, int] | None = None
         loss = float(loss)
         if not (0.0 <= loss < 1.0):
             raise ValueError(f"loss must be a fraction in [0, 1), got {loss!r}")
@@ -163,7 +183,8 @@ class LinkModel:
         return (
             f"LinkModel(delay_ms={self.delay_ms}, jitter_ms={self.jitter_ms}, "
             f"jitter={self.jitter!r}, rate_mbit={self.rate_mbit}, loss={self.loss}, "
-            f"reorder={self.reorder}, seed={self.seed})"
+            f"reorder={self.reorder}, seed={self.seed}"
+            + (f", rate_trace={self.rate_trace.name!r}" if self.rate_trace is not None else "") + ")"
         )
 
     # -- sending -------------------------------------------------------------
@@ -208,9 +229,15 @@ class LinkModel:
             self.stats.bytes_dropped += size_bytes
             return None
 
-        depart = max(t, self._link_free_at) + self.serialization_time(size_bytes)
-        if self.rate_mbit is not None:
+        if self.rate_trace is not None:
+            start = max(t, self._link_free_at) - self.trace_start
+            depart, self._trace_cursor = self.rate_trace.depart(start, size_bytes, self._trace_cursor)
+            depart += self.trace_start
             self._link_free_at = depart
+        else:
+            depart = max(t, self._link_free_at) + self.serialization_time(size_bytes)
+            if self.rate_mbit is not None:
+                self._link_free_at = depart
         arrive = depart + max(0.0, self.delay_ms * 1e-3 + jitter_s)
         if not self.reorder:
             arrive = max(arrive, self._last_arrival)

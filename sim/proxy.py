@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.messages import DEFAULT_MAX_MESSAGE_BYTES, MessageSplitter
 from quadcast.sim.link import LinkModel, parse_duration_ms, parse_loss, parse_rate_mbit
+from quadcast.sim.ratetrace import RateTrace
 
 __all__ = ["DEFAULT_MAX_QUEUE_BYTES", "DirectionStats", "LinkProxy", "ProxyStats", "parse_link_args"]
 
@@ -50,12 +51,13 @@ _READ_CHUNK = 1 << 16
 
 def parse_link_args(delay: str | float = 0, jitter: str | float = 0, rate: str | float | None = None,
                     loss: str | float = 0, *, jitter_dist: str = "uniform", reorder: bool = False,
-                    seed: int = 0) -> LinkModel:
+                    seed: int = 0, rate_trace: RateTrace | None = None) -> LinkModel:
     """A :class:`LinkModel` from netem/tc-style CLI strings: ``delay="20ms"``, ``jitter="2ms"``,
-    ``rate="50mbit"`` (``None`` or ``""`` = unlimited), ``loss="0.5%"``."""
+    ``rate="50mbit"`` (``None`` or ``""`` = unlimited), ``loss="0.5%"``; or a Mahimahi ``rate_trace`` instead of
+    the rate (its time 0 is when the proxy starts)."""
     rate_mbit = None if rate is None or (isinstance(rate, str) and not rate.strip()) else parse_rate_mbit(rate)
     return LinkModel(delay_ms=parse_duration_ms(delay), jitter_ms=parse_duration_ms(jitter), jitter=jitter_dist,
-                     rate_mbit=rate_mbit, loss=parse_loss(loss), reorder=reorder, seed=seed)
+                     rate_mbit=rate_mbit, loss=parse_loss(loss), reorder=reorder, seed=seed, rate_trace=rate_trace)
 
 
 @dataclass
@@ -288,6 +290,9 @@ class LinkProxy:
         """Start listening; returns once the socket is bound."""
         if self._server is not None:
             raise RuntimeError("LinkProxy.start: already started")
+        for link in (self.up, self.down):        # a rate trace starts with the proxy
+            if link.rate_trace is not None:
+                link.trace_start = asyncio.get_running_loop().time()
         self._directions = {"up": _Direction("up", self.up, self.max_queue_bytes, self.stats.up),
                             "down": _Direction("down", self.down, self.max_queue_bytes, self.stats.down)}
         for d in self._directions.values():

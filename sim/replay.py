@@ -8,6 +8,14 @@ encode a frame for the pose predicted at the time the frame will be shown, and t
 wait for a self-contained one after a loss) and when to ask for a reference, and the client shows its newest state
 reprojected to its true pose. Nothing depends on how fast the machine is: when it is slower than real time,
 virtual time simply waits. The same seed gives the same run.
+
+The downlink runs at a fixed rate or along a Mahimahi rate trace (:mod:`quadcast.sim.ratetrace`). The client
+reports each frame's arrival (time and bytes) back to the server over a path with the uplink's latency and jitter
+(its own random stream, so runs without a rate controller are what they were); with a rate controller
+(``ReplayConfig.rate``) the server session picks each frame's operating point from those reports, and the
+replay applies it to the method server before it encodes the frame. With a gaze trace (``ReplayConfig.gaze``)
+the server foveates around the gaze the client sent with its newest pose (an uplink latency before the frame
+starts); without one, around the view centre.
 """
 from __future__ import annotations
 
@@ -20,14 +28,17 @@ from quadcast.client.method import Coverage, MethodClient
 from quadcast.codec.decoder import VideoError
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload
-from quadcast.protocol.messages import PoseUpdate, ReferenceRequest, encode_message
+from quadcast.protocol.messages import PoseUpdate, ReceiveReport, ReferenceRequest, encode_message
 from quadcast.protocol.prediction import PredictorSettings
-from quadcast.protocol.session import (ClientSession, EncodeFrame, RequestReference, ServerSession,
+from quadcast.protocol.rate import OperatingPoint, RateConfig
+from quadcast.protocol.session import (ClientSession, EncodeFrame, RequestReference, SendReport, ServerSession,
                                        ServerSessionConfig)
 from quadcast.render.camera import Pose
 from quadcast.render.traces import Trace
 from quadcast.server.method import MethodServer
+from quadcast.sim.gaze import GazeTrace
 from quadcast.sim.link import LinkModel
+from quadcast.sim.ratetrace import RateTrace
 
 POSE_MESSAGE_BYTES = len(encode_message(PoseUpdate(0, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))))
 
@@ -45,11 +56,16 @@ class ReplayConfig:
     seed: int = 0
     server_delay_ms: float = 0.0   # virtual time the server spends per frame
     reference_timeout_s: float = 1.5
+    rate_trace: RateTrace | None = None   # the downlink's capacity over time (instead of rate_mbit)
+    rate: RateConfig | None = None        # the server's rate controller (None: no adaptation)
+    point: OperatingPoint | None = None   # without a controller: a fixed operating point
+    gaze: GazeTrace | None = None         # where the viewer looks (None: the view centre)
 
     def server_session(self) -> ServerSessionConfig:
         """The server session of a replay: one shared clock, the link's nominal latency as the downlink estimate."""
         return ServerSessionConfig(predict=self.predict, predictor=self.predictor, downlink_s=self.latency_ms / 1e3,
-                                   encode_s=self.server_delay_ms / 1e3, clock_offset_s=0.0)
+                                   encode_s=self.server_delay_ms / 1e3, clock_offset_s=0.0, rate=self.rate,
+                                   point=self.point)
 
 
 @dataclass
@@ -78,6 +94,25 @@ class ReplayTotals:
     frames_before_payload: int = 0        # display ticks before the first payload was applied (shown black)
     payloads: list = field(default_factory=list)    # per server frame sent: (frame type, bytes, stats)
     client: object = None                 # the client session's counters
+    server: object = None                 # the server session's counters
+    sent: list = field(default_factory=list)     # per frame sent: SentFrame
+    ages: list = field(default_factory=list)     # per display tick: (t, age_ms or nan, frame_id)
+    rate: object = None                   # the rate controller's final state (RateState) when there is one
+
+
+@dataclass
+class SentFrame:
+    """One server frame on the downlink: when it was sent and arrived (nan: lost), its bytes, its operating point
+    (ladder index and name; None without a rate controller) and the controller's estimates when it was sent."""
+
+    frame_id: int
+    t_sent: float
+    t_arrive: float
+    bytes: int
+    point_index: int | None = None
+    point: str | None = None
+    capacity_mbps: float | None = None
+    queue_delay_ms: float | None = None
 
 
 def replay(trace: Trace, server: MethodServer, client: MethodClient, config: ReplayConfig,
@@ -87,11 +122,16 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
     the state is updated on every frame regardless. `on_display` receives each shown frame."""
     up = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=None, loss=0.0, seed=config.seed)
     down = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=config.rate_mbit, loss=config.loss,
-                     seed=config.seed + 1)
+                     seed=config.seed + 1, rate_trace=config.rate_trace)
+    back = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=None, loss=0.0, seed=config.seed + 2)  # reports
     server_session = ServerSession(config.server_session())
     client_session = ClientSession(config.reference_timeout_s)
     client_session.connected(0.0)
-    totals = ReplayTotals(client=client_session.counters)
+    hello_report = ReceiveReport(client_session.announce_reports().entries)
+    totals = ReplayTotals(client=client_session.counters, server=server_session.counters)
+    rate = server_session.rate
+    points: dict[int, int | None] = {}          # frame id -> ladder index it was made at
+    back.send(0.0, hello_report, len(encode_message(hello_report)))
     t0 = float(trace.times[0])
     send_period, display_period = 1.0 / config.server_hz, 1.0 / config.client_hz
     server_delay = config.server_delay_ms / 1e3
@@ -105,6 +145,8 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
             return
         if decision.reference:
             server.request_reference()
+        if decision.point is not None:
+            server.apply_operating_point(decision.point)
         in_flight = (decision.started + server_delay, decision)
 
     def finish_encode(until: float) -> None:
@@ -113,7 +155,10 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
         while in_flight is not None and in_flight[0] <= until:
             ready, decision = in_flight
             in_flight = None
+            if config.gaze is not None:      # the gaze the client sent with its newest pose, an uplink latency ago
+                server.set_gaze(config.gaze.direction_at(decision.started - config.latency_ms / 1e3))
             payload = server.encode(Pose(decision.position, decision.quat), decision.display_t)
+            points[payload.frame_id] = decision.point_index
             encode(server_session.frame_encoded(ready, payload, payload.self_contained, ready - decision.started))
             while (p := server_session.next_to_send()) is not None:
                 size = p.size_bytes
@@ -122,8 +167,30 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
                 totals.bytes_geometry += len(p.geometry)
                 totals.bytes_total += size
                 totals.payloads.append((p.frame_type, len(p.video) + len(p.geometry), p.stats))
-                if down.send(ready, p, size) is None:
+                server_session.frame_sent(ready, p.frame_id, size)
+                d = down.send(ready, p, size)
+                if d is None:
                     totals.frames_lost += 1
+                index = points.pop(p.frame_id, None)
+                st = rate.state if rate is not None else None
+                totals.sent.append(SentFrame(
+                    p.frame_id, ready, d.t_arrive if d is not None else float("nan"), size, index,
+                    rate.ladder[index].name if index is not None else None,
+                    st.capacity_mbps if st is not None else None,
+                    st.queue_delay_s * 1e3 if st is not None and st.queue_delay_s is not None else None))
+
+    def timers(until: float) -> None:
+        """Run the server session's timer (a frame waiting for the flood guard or its point's frame rate) up to
+        `until`, as the live server's encoder task does."""
+        while (t := server_session.timer()) is not None and t <= until:
+            finish_encode(t)
+            if server_session.timer() != t:
+                continue
+            decision = server_session.handle_timer(t)
+            encode(decision)
+            finish_encode(t)
+            if decision is None:
+                break
 
     def request(decision: RequestReference | None, now: float) -> None:
         if decision is not None:
@@ -137,19 +204,28 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
             p, q = trace.pose_at(t0 + next_send)
             up.send(next_send, PoseUpdate(0, next_send, p, q), POSE_MESSAGE_BYTES)
             next_send += send_period
-        # Server: every message that has arrived by now, in arrival order.
-        for d in up.poll(now):
+        # Server: every message that has arrived by now, in arrival order (poses and requests first on a tie).
+        for d in sorted(up.poll(now) + back.poll(now), key=lambda d: (d.t_arrive, isinstance(d.message,
+                                                                                              ReceiveReport))):
             finish_encode(d.t_arrive)
-            if isinstance(d.message, ReferenceRequest):
+            timers(d.t_arrive)
+            m = d.message
+            if isinstance(m, ReferenceRequest):
                 server_session.reference_requested(d.t_arrive)
                 continue
-            m = d.message
-            encode(server_session.pose_received(d.t_arrive, m.t_client, m.position, m.quat))
+            if isinstance(m, ReceiveReport):
+                encode(server_session.report_received(d.t_arrive, m.entries))
+            else:
+                encode(server_session.pose_received(d.t_arrive, m.t_client, m.position, m.quat))
             finish_encode(d.t_arrive)
         finish_encode(now)
-        # Server -> client: apply what arrived.
+        timers(now)
+        # Server -> client: apply what arrived (and report its arrival).
         for d in down.poll(now):
             payload: FramePayload = d.message
+            report: SendReport = client_session.frame_arrived(d.t_arrive, payload.frame_id, d.size_bytes)
+            msg = ReceiveReport(report.entries)
+            back.send(d.t_arrive, msg, len(encode_message(msg)))
             if not client_session.frame_received(now, payload.frame_id, payload.self_contained):
                 request(client_session.tick(now), now)
                 continue
@@ -163,6 +239,8 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
         request(client_session.tick(now), now)
         if newest is None:
             totals.frames_before_payload += 1
+        totals.ages.append((now, (now - newest.t) * 1e3 if newest else float("nan"),
+                            newest.frame_id if newest else -1))
         if show is not None and not show(i):
             continue
         p, q = trace.pose_at(t0 + now)
@@ -176,4 +254,5 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
         if on_display:
             on_display(frame)
     totals.duration_s = display_frames * display_period
+    totals.rate = rate.state if rate is not None else None
     return totals

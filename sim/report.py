@@ -432,6 +432,56 @@ def _report_plots(flat: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
     return plots
 
 
+def _series(d: Mapping[str, Any], key: str) -> np.ndarray:
+    return np.array([np.nan if v is None else float(v) for v in d.get(key, [])], np.float64)
+
+
+def timeline_plot(timeline: Mapping[str, Any], flat: Sequence[Mapping[str, Any]] = ()):
+    """The figure of a rate-limited run's ``timeline`` (see :mod:`quadcast.sim.evaluate`): the link's capacity,
+    the rate sent (per 0.1 s) and the controller's estimate; the operating point of each frame sent; FLIP of the
+    scored frames (``flat`` records) and the frame age at every display tick. Returns a matplotlib Figure."""
+    sent, display = timeline.get("sent", {}), timeline.get("display", {})
+    panels = 3 if timeline.get("points") else 2
+    fig = _figure(8.0, 2.2 * panels)
+    axes = fig.subplots(panels, 1, sharex=True, squeeze=False)[:, 0]
+    ax = axes[0]
+    t_sent, size = _series(sent, "t"), _series(sent, "bytes")
+    if "link" in timeline:
+        ax.step(_series(timeline["link"], "t"), _series(timeline["link"], "mbps"), where="mid", color="black",
+                lw=1.2, label="link capacity")
+    if t_sent.size:
+        edges = np.arange(0.0, float(np.nanmax(t_sent)) + 0.2, 0.1)
+        sums, _ = np.histogram(t_sent, edges, weights=size)
+        ax.step(edges[1:], sums * 8 / 0.1 / 1e6, where="pre", color="tab:blue", lw=1.0, label="sent (per 0.1 s)")
+        cap = _series(sent, "capacity_mbps")
+        if np.isfinite(cap).any():
+            ax.plot(t_sent, cap, color="tab:orange", lw=1.0, ls="--", label="estimated capacity")
+    ax.set_ylabel("Mbit/s")
+    ax.set_title("Rate, operating point, quality and frame age")
+    ax.legend(loc="upper right", fontsize=7)
+    ax.grid(alpha=0.3)
+    if panels == 3:
+        ax = axes[1]
+        names = list(timeline["points"])
+        ax.step(t_sent, _series(sent, "point"), where="post", color="tab:green", lw=1.2)
+        ax.set_yticks(range(len(names)), names, fontsize=6)
+        ax.set_ylabel("point")
+        ax.grid(alpha=0.3)
+    ax = axes[-1]
+    if flat:
+        x, _ = _time_axis(flat)
+        ax.plot(x, _numeric(flat, "flip"), color="tab:red", lw=1.0, marker=".", ms=3, label="FLIP")
+    ax.set_ylabel("FLIP ↓")
+    ax.set_xlabel("time (s)")
+    ax.grid(alpha=0.3)
+    age = _series(display, "age_ms")
+    if age.size:
+        twin = ax.twinx()
+        twin.plot(_series(display, "t"), age, color="tab:gray", lw=0.8, label="frame age")
+        twin.set_ylabel("frame age (ms)")
+    return fig
+
+
 # --------------------------------------------------------------------------- HTML
 
 _CSS = """
@@ -513,7 +563,8 @@ def write_report_html(
     frames = [_as_frame_images(item, i) for i, item in enumerate(worst_frames)]
 
     body = [f"<h1>{html.escape(title)}</h1>", f"<p>{len(flat)} frames.</p>", "<h2>Summary</h2>"]
-    summary_flat = flatten_record(summary)
+    timeline = summary.get("timeline")
+    summary_flat = flatten_record({k: v for k, v in summary.items() if k != "timeline"})
     body.append(_table(["key", "value"], ([k, summary_flat[k]] for k in sorted(summary_flat))))
 
     stats = summarize_records(records)
@@ -527,6 +578,8 @@ def write_report_html(
         )
 
     plots = _report_plots(flat) if flat else []
+    if isinstance(timeline, Mapping):
+        plots.insert(0, ("Rate, operating point, FLIP and frame age", _figure_data_uri(timeline_plot(timeline, flat))))
     if plots:
         body.append("<h2>Over time</h2>")
         for name, uri in plots:

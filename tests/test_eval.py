@@ -111,3 +111,51 @@ def test_eval_replays_a_trace_anchored_at_the_spawn_point(tmp_path):
         run_eval(EvalSpec(method="atw", **TINY, anchor="1,2"))
     with pytest.raises(ValueError, match="after --start"):
         run_eval(EvalSpec(method="atw", **{**TINY, "trace": str(trace)}, start=1.9))
+
+
+def test_adaptive_eval_over_a_rate_trace_records_each_frames_point(tmp_path):
+    """--adapt with a Mahimahi trace: the summary has the frame age and its bound, and a timeline with each frame's
+    operating point, which frames.csv repeats per scored frame; the report plots it; FLIP of the fovea too."""
+    from quadcast.protocol.rate import load_ladder
+    spec = EvalSpec(method="quasar", latency_ms=30, jitter_ms=10, rate_trace="builtin:step-100-15-100", adapt=True,
+                    **{**TINY, "frames": 24})
+    s = run_eval(spec, tmp_path)
+    ladder = load_ladder()
+    assert s["adapt"] is True and s["rate_trace"] == "builtin:step-100-15-100"
+    assert s["age_bound_ms"] == pytest.approx(30 + 2000 / 30) and s["age_ms"] > 0
+    tl = s["timeline"]
+    assert tl["points"] == [p.name for p in ladder.points]
+    assert len(tl["sent"]["point"]) == s["server_frames"] and all(0 <= i < len(ladder) for i in tl["sent"]["point"])
+    assert len(tl["display"]["age_ms"]) == 24 and tl["link"]["mbps"][0] == pytest.approx(100, rel=0.05)
+    assert 0 < s["flip_fovea"] < 1
+    rows = list(csv.DictReader((tmp_path / "frames.csv").open()))
+    assert all(r["point"] != "" and r["flip_fovea"] != "" for r in rows)
+    assert "Rate, operating point" in (tmp_path / "report.html").read_text()
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["timeline"]["sent"]["point"] == tl["sent"]["point"]
+
+
+def test_fixed_operating_point_and_bad_rate_options(tmp_path):
+    s = run_eval(EvalSpec(method="quasar", point="crf=35,hidden=0,fps=15", **TINY))
+    assert s["point"]["crf"] == 35 and s["point"]["fps"] == 15
+    assert s["server_frames"] <= 12 / 4 + 1          # 15 frames/s over 12 display frames at 60 Hz
+    with pytest.raises(ValueError, match="operating points are quasar's knobs"):
+        run_eval(EvalSpec(method="atw", adapt=True, **TINY))
+    with pytest.raises(ValueError, match="give one of them"):
+        run_eval(EvalSpec(method="quasar", rate_mbit=10, rate_trace="builtin:const-20", **TINY))
+    with pytest.raises(ValueError, match="unknown; built-in rate traces"):
+        run_eval(EvalSpec(method="quasar", rate_trace="builtin:nope", **TINY))
+    with pytest.raises(ValueError, match="no point named"):
+        run_eval(EvalSpec(method="quasar", point="no-such-point", **TINY))
+
+
+def test_a_gaze_trace_moves_the_foveal_score(tmp_path):
+    gaze = tmp_path / "gaze.txt"
+    gaze.write_text("0 25 10\n")
+    point = "sigma=4,fovea=5,max=32,atlas=4"
+    centre = run_eval(EvalSpec(method="quasar", point=point, **TINY))
+    off = run_eval(EvalSpec(method="quasar", point=point, gaze=str(gaze), **TINY))
+    assert centre["flip_fovea"] != off["flip_fovea"] and centre["flip"] != off["flip"]
+    gaze.write_text("0 100 0\n")
+    with pytest.raises(ValueError, match="within"):
+        run_eval(EvalSpec(method="quasar", point=point, gaze=str(gaze), **TINY))

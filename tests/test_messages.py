@@ -20,6 +20,7 @@ from quadcast.protocol.messages import (
     MessageSplitter,
     MessageType,
     PoseUpdate,
+    ReceiveReport,
     ReferenceRequest,
     Welcome,
     decode_message_body,
@@ -43,7 +44,9 @@ poses = st.builds(PoseUpdate, seq=st.integers(0, 2**64 - 1), t_client=st.floats(
 frames = st.builds(Frame, payload=st.binary(max_size=300))
 refreqs = st.builds(ReferenceRequest, reason=text)
 errors = st.builds(ErrorMessage, code=u16, text=text, retry_after_s=st.integers(0, 2**32 - 1).map(lambda ms: ms / 1e3))
-messages = st.one_of(hellos, welcomes, poses, frames, refreqs, errors, st.just(Bye()))
+reports = st.builds(ReceiveReport, entries=st.lists(st.tuples(st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1),
+                                                               st.floats(-1e10, 1e10)), max_size=5).map(tuple))
+messages = st.one_of(hellos, welcomes, poses, frames, refreqs, errors, st.just(Bye()), reports)
 
 
 def _raw(mtype: int, body: bytes) -> bytes:
@@ -61,7 +64,7 @@ def test_every_message_round_trips(msg):
     assert wire[4] == int({Hello: MessageType.HELLO, Welcome: MessageType.WELCOME,
                            PoseUpdate: MessageType.POSE_UPDATE, Frame: MessageType.FRAME,
                            ReferenceRequest: MessageType.REFERENCE_REQUEST, ErrorMessage: MessageType.ERROR,
-                           Bye: MessageType.BYE}[type(msg)])
+                           Bye: MessageType.BYE, ReceiveReport: MessageType.RECEIVE_REPORT}[type(msg)])
     out = MessageDecoder().feed(wire)
     assert out == [msg]
     assert type(out[0]) is type(msg)
@@ -156,6 +159,10 @@ def test_frame_payload_poses_are_bounded_like_pose_updates(position, quat, t, ma
     (lambda: PoseUpdate(0, 0.0, [0, 0, 0], [0, 0, 0, 0]), "PoseUpdate.quat"),
     (lambda: PoseUpdate(0, 0.0, [0, 0], [0, 0, 0, 1]), "PoseUpdate.position"),
     (lambda: ErrorMessage(-1, "x"), "ErrorMessage.code"),
+    (lambda: ReceiveReport(((1, -5, 0.0),)), r"ReceiveReport.entries\[0\].bytes"),
+    (lambda: ReceiveReport(((1, 5, float("nan")),)), r"ReceiveReport.entries\[0\].t_arrive"),
+    (lambda: ReceiveReport(((1, 5),)), r"ReceiveReport.entries\[0\]: expected"),
+    (lambda: ReceiveReport(((1, 5, 0.0),) * 257), "at most 256"),
 ])
 def test_invalid_fields_are_rejected_on_construction(make, match):
     with pytest.raises(ValueError, match=match):
@@ -226,6 +233,10 @@ def test_unknown_type():
     (MessageType.REFERENCE_REQUEST, b"\x01", "ReferenceRequest: body truncated"),
     (MessageType.ERROR, b"\x01\x00\x01\x00\x80", "ErrorMessage.text: invalid utf-8"),
     (MessageType.BYE, b"\x00", "Bye: 1 unexpected trailing"),
+    (MessageType.RECEIVE_REPORT, struct.pack("<H", 2) + struct.pack("<IId", 1, 2, 0.5), "ReceiveReport: body truncated"),
+    (MessageType.RECEIVE_REPORT, struct.pack("<H", 300), "ReceiveReport.count: 300 entries"),
+    (MessageType.RECEIVE_REPORT, struct.pack("<H", 1) + struct.pack("<IId", 1, 2, float("inf")),
+     r"ReceiveReport.entries\[0\].t_arrive"),
 ])
 def test_malformed_bodies_name_the_problem(mtype, body, match):
     dec = MessageDecoder()

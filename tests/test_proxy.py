@@ -276,3 +276,27 @@ def test_proxy_rejects_shared_models():
     link = LinkModel()
     with pytest.raises(ValueError, match="different"):
         LinkProxy("127.0.0.1", 0, "127.0.0.1", 1, link, link)
+
+
+def test_a_rate_trace_shapes_the_downlink_from_the_proxy_start(tmp_path):
+    from quadcast.cli.live import link_models
+    from quadcast.sim.ratetrace import trace_from_schedule
+    path = tmp_path / "8mbit.mahi"
+    path.write_text(trace_from_schedule([(0.1, 8.0)], "8mbit").to_text())
+    up, down = link_models("0ms", "0ms", "50mbit", "0%", 1, rate_trace=str(path))
+    assert up.rate_mbit == 50 and up.rate_trace is None
+    assert down.rate_mbit is None and down.rate_trace is not None and down.rate_trace.mean_mbit == pytest.approx(8, rel=0.01)
+
+    async def body():
+        # the echo's answer crosses the traced downlink: 10 messages of 10,000 bytes take >= 100 ms at 8 Mbit/s
+        echo, proxy, reader, writer = await proxied_echo(LinkModel(), down)
+        loop = asyncio.get_running_loop()
+        assert down.trace_start == pytest.approx(loop.time(), abs=1.0)
+        msgs = [Frame(bytes([i]) * (10_000 - 5)) for i in range(10)]
+        t0 = loop.time()
+        writer.write(b"".join(encode_message(m) for m in msgs))
+        got = await read_messages(reader, MessageDecoder(), 10)
+        assert got == msgs
+        assert loop.time() - t0 >= 0.095
+        await teardown(echo, proxy, writer)
+    run(body())

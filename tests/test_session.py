@@ -2,7 +2,8 @@
 
 The cross-driver test runs one event sequence through the virtual-time replay (quadcast.sim.replay) and through the
 live server's asyncio session (quadcast.server.app.Session) -- the latter on an event loop whose clock is virtual,
-with a fake channel and a fake worker -- and checks that every decision is identical.
+with a fake channel and a fake worker -- and checks that every decision is identical; with a rate controller
+too (receive reports in, each frame's operating point and the frames held back out), over a slow downlink.
 """
 from __future__ import annotations
 
@@ -13,10 +14,11 @@ import types
 import numpy as np
 import pytest
 
-from quadcast.protocol.frame import FramePayload, FrameStats, FrameType, Method
-from quadcast.protocol.messages import Bye, Frame, Hello, PoseUpdate, ReferenceRequest, Welcome
+from quadcast.protocol.messages import Bye, Frame, Hello, PoseUpdate, ReceiveReport, ReferenceRequest, Welcome
+from quadcast.protocol.rate import Ladder, OperatingPoint, RateConfig
 from quadcast.protocol.session import (ClientSession, EncodeFrame, FrameQueue, RequestReference, ServerSession,
                                        ServerSessionConfig)
+from stubs import StubClient, StubServer
 
 Q0 = np.array([0.0, 0.0, 0.0, 1.0])
 
@@ -156,12 +158,22 @@ class _Recording(ServerSession):
 
     def __init__(self, config=None):
         super().__init__(config)
-        self.log = []
+        self.log, self.sent = [], []
 
     def _start(self, now):
         d = super()._start(now)
-        self.log.append(("encode", d.started, d.position.tolist(), d.quat.tolist(), d.display_t, d.reference))
+        self.log.append(("encode", d.started, d.position.tolist(), d.quat.tolist(), d.display_t, d.reference,
+                         d.point_index))
         return d
+
+    def report_received(self, now, entries):
+        self.log.append(("report", now, tuple(entries)))
+        return super().report_received(now, entries)
+
+    def frame_sent(self, now, frame_id, size_bytes):
+        # kept apart: a message arriving at the very instant a frame is sent may be logged on either side of it
+        self.sent.append((now, frame_id, size_bytes))
+        return super().frame_sent(now, frame_id, size_bytes)
 
     def pose_received(self, now, t_client, position, quat):
         self.log.append(("pose", now, t_client))
@@ -170,52 +182,6 @@ class _Recording(ServerSession):
     def reference_requested(self, now):
         self.log.append(("reference", now))
         return super().reference_requested(now)
-
-
-class _StubServer:
-    """A method server without GL: every other frame self-contained, as if each were a reference."""
-
-    def __init__(self):
-        self.frame_id, self.force = 0, False
-
-    def request_reference(self):
-        self.force = True
-
-    def encode(self, pose, t):
-        sc = self.force or self.frame_id % 3 == 0
-        self.force = False
-        p = FramePayload(Method.QUASAR, self.frame_id, FrameType.REFERENCE if sc else FrameType.RESIDUAL, 0, t,
-                         pose.position, pose.quat, b"\0" * 1000, b"", sc, FrameStats())
-        self.frame_id += 1
-        return p
-
-    def close(self):
-        pass
-
-
-class _StubClient:
-    """A method client without GL that needs a reference after a lost frame."""
-
-    needs_reference = False
-
-    def __init__(self):
-        self.last = -1
-        self.stats = {}
-
-    def receive(self, payload):
-        from quadcast.protocol.errors import ProtocolError
-        if not payload.self_contained and payload.frame_id != self.last + 1:
-            self.needs_reference = True
-            raise ProtocolError(f"frame {payload.frame_id} follows {self.last}")
-        self.needs_reference = False
-        self.last = payload.frame_id
-
-    def render(self, pose):
-        return np.zeros((2, 2, 3), np.uint8)
-
-    def coverage(self):
-        from quadcast.client.method import Coverage
-        return Coverage.empty(2, 2)
 
 
 def _virtual_time(loop: asyncio.AbstractEventLoop) -> None:
@@ -258,15 +224,17 @@ class _FakeWorker:
     kind, pid, death = "fake", 0, None
 
     def __init__(self, delay: float):
-        self.delay, self.stub = delay, _StubServer()
+        self.delay, self.stub = delay, StubServer()
         self.died = asyncio.Event()
 
-    async def encode(self, position, quat, t, reference):
+    async def encode(self, position, quat, t, reference, point=None):
         from quadcast.protocol.frame import encode_frame_payload
         from quadcast.render.camera import Pose
         await asyncio.sleep(self.delay)
         if reference:
             self.stub.request_reference()
+        if point is not None:
+            self.stub.apply_operating_point(point)
         p = self.stub.encode(Pose(position, quat), t)
         return encode_frame_payload(p), p.self_contained
 
@@ -274,22 +242,34 @@ class _FakeWorker:
         pass
 
 
-@pytest.mark.parametrize("server_delay_ms", [0.0, 45.0])
-def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_delay_ms):
+LADDER = Ladder(tuple(OperatingPoint(f"p{i}", crf=23 + i, mbps=m) for i, m in enumerate((0.1, 0.2, 0.4, 0.8))))
+
+
+@pytest.mark.parametrize("server_delay_ms, adapt", [(0.0, False), (45.0, False), (0.0, True), (45.0, True)])
+def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_delay_ms, adapt):
     import quadcast.server.app as app
     import quadcast.sim.replay as replay_mod
     from quadcast.protocol.admission import Admission
     from quadcast.render.traces import resolve_trace
 
-    # 1. The virtual-time replay, with a lossy downlink so the client asks for references.
+    # 1. The virtual-time replay, with a lossy downlink so the client asks for references (with a rate controller:
+    #    a downlink too slow for the best point, so the controller moves between points and holds frames back).
     sessions = []
     monkeypatch.setattr(replay_mod, "ServerSession", lambda cfg: sessions.append(_Recording(cfg)) or sessions[-1])
-    cfg = replay_mod.ReplayConfig(latency_ms=30, jitter_ms=15, loss=0.15, seed=3, server_delay_ms=server_delay_ms,
-                                  reference_timeout_s=0.2)
-    replay_mod.replay(resolve_trace("builtin:walk"), _StubServer(), _StubClient(), cfg, 180)
+    cfg = replay_mod.ReplayConfig(latency_ms=30, jitter_ms=15, loss=0.0 if adapt else 0.15, seed=3,
+                                  server_delay_ms=server_delay_ms, reference_timeout_s=0.2,
+                                  rate_mbit=0.3 if adapt else None,
+                                  rate=RateConfig(LADDER, start_mbps=1.0) if adapt else None)
+    replay_mod.replay(resolve_trace("builtin:walk"), StubServer(), StubClient(), cfg, 180)
     replayed = sessions[0].log
     assert sum(1 for e in replayed if e[0] == "encode") > 40
-    assert any(e[0] == "reference" for e in replayed)           # the loss made the client ask
+    if adapt:
+        core = sessions[0]
+        assert sum(1 for e in replayed if e[0] == "report") > 40
+        assert core.rate.state.decreases >= 1 and len({e[6] for e in replayed if e[0] == "encode"}) >= 2
+        assert core.counters.frames_paced > 0
+    else:
+        assert any(e[0] == "reference" for e in replayed)           # the loss made the client ask
     if server_delay_ms:
         assert sum(1 for e in replayed if e[0] == "pose") > sum(1 for e in replayed if e[0] == "encode")
 
@@ -307,8 +287,7 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
                                      max_width=64, max_height=64, token="", server_hz=30.0,
                                      session_config=lambda: session_config),
         admission=Admission(), workers=set(), session_ended=lambda c: None)
-    events = [e for e in replayed if e[0] in ("pose", "reference")]
-    poses = {e[1]: e for e in events}
+    events = [e for e in replayed if e[0] in ("pose", "reference", "report")]
     trace = resolve_trace("builtin:walk")
 
     async def main():
@@ -321,6 +300,8 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
             if e[0] == "pose":
                 p, q = trace.pose_at(trace.times[0] + e[2])
                 msg = PoseUpdate(0, e[2], p, q)
+            elif e[0] == "report":
+                msg = ReceiveReport(e[2])
             else:
                 msg = ReferenceRequest("test")
             at.setdefault(e[1], []).append(msg)
@@ -339,4 +320,5 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
     # The replay ends at its last display tick; the live session went on with what was pending then.
     end = 179 / 60 + 1e-9
     live = [e for e in live_sessions[0].log if e[1] <= end]
-    assert poses and live == replayed
+    assert events and live == replayed
+    assert [e for e in live_sessions[0].sent if e[0] <= end] == sessions[0].sent

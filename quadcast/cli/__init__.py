@@ -183,7 +183,8 @@ def _eval_spec(args):
                     jitter_ms=args.jitter, rate_mbit=parse_rate_mbit(args.rate) if args.rate else None,
                     loss=parse_loss(args.loss) if args.loss else 0.0, viewcell_m=args.viewcell, width=w, height=h,
                     frames=args.frames, every=args.every, stereo=args.stereo, seed=args.seed,
-                    predict=not args.no_predict, crf=args.crf)
+                    predict=not args.no_predict, crf=args.crf, rate_trace=args.rate_trace, adapt=args.adapt,
+                    target_mbps=args.target_mbps, point=args.point, ladder=args.ladder, gaze=args.gaze)
 
 
 def cmd_eval(args) -> int:
@@ -207,15 +208,20 @@ def cmd_eval(args) -> int:
 
 # ------------------------------------------------------------------------------------------------- bench
 
+def parser_default_sizes() -> str:
+    return "960x540,1920x1080"
+
+
 def cmd_bench(args) -> int:
     from quadcast.render.camera import parse_size
     from quadcast.cli import bench
     if args.what == "quality":
         return _bench_quality(args)
-    if args.traces:
-        raise ValueError(f"bench {args.what}: trace files are for 'bench quality' only")
+    if args.traces and args.what != "ladder":
+        raise ValueError(f"bench {args.what}: trace files are for 'bench quality' and 'bench ladder' only")
     sizes = [parse_size(s) for s in args.sizes.split(",")]
     scenes = args.scenes.split(",")
+    frames_given = args.frames
     args.frames = 10 if args.frames is None else args.frames
     if args.what == "render":
         rows = bench.bench_render(scenes, sizes, args.frames)
@@ -225,6 +231,11 @@ def cmd_bench(args) -> int:
         rows = bench.bench_client(scenes, sizes, args.frames, quiet=args.quiet)
     elif args.what == "stereo":
         rows = bench.bench_stereo(scenes, sizes[0], args.frames, quiet=args.quiet)
+    elif args.what == "ladder":
+        size = sizes[0] if args.sizes != parser_default_sizes() else (640, 360)
+        rows = bench.bench_ladder(args.traces or None, size, 48 if frames_given is None else frames_given,
+                                  out=Path(args.out) if args.out else None, write=args.write,
+                                  command="quadcast " + " ".join(sys.argv[1:]), quiet=args.quiet)
     elif args.what == "browser":
         from quadcast.cli.browser import bench_browser, chromium_missing
         if (missing := chromium_missing()) is not None:
@@ -332,6 +343,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--latency", type=float, default=20.0, help="one-way latency, ms")
     p.add_argument("--jitter", type=float, default=10.0, help="uniform jitter, +- ms")
     p.add_argument("--rate", help="downlink rate cap, e.g. 200mbit")
+    p.add_argument("--rate-trace", help="downlink capacity over time: a Mahimahi trace file (one line per 1500-byte "
+                                        "delivery opportunity, ms) or builtin:const-20|step-100-15-100|sawtooth-10-40")
+    p.add_argument("--adapt", action="store_true",
+                   help="the server's rate controller picks each frame's operating point from the client's receive "
+                        "reports (quasar)")
+    p.add_argument("--target-mbps", type=float, help="the rate controller's ceiling, Mbit/s (implies --adapt)")
+    p.add_argument("--point", help="a fixed operating point: a ladder point's name or key=value,... (crf, quad, "
+                                   "coarse, viewcell, hidden, every, fovea, sigma, gamma, max, atlas)")
+    p.add_argument("--ladder", help="the operating points' ladder file (default: the measured one shipped)")
+    p.add_argument("--gaze", help="a gaze trace ('t_ms x_deg y_deg' per line, angles from the view axis): foveated "
+                                  "points and FLIP over the central 20 degrees follow it (default: the view centre)")
     p.add_argument("--loss", help="downlink message loss, e.g. 0.5%%")
     p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
     p.add_argument("--size", default="960x540", help="WxH")
@@ -347,17 +369,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_eval)
 
-    p = sub.add_parser("bench", help="print speed figures (not a test); 'quality': quality under real head motion")
-    p.add_argument("what", choices=["server", "render", "client", "stereo", "browser", "quality"],
+    p = sub.add_parser("bench", help="print speed figures (not a test); 'quality': quality under real head motion; "
+                                     "'ladder': the rate controller's operating points")
+    p.add_argument("what", choices=["server", "render", "client", "stereo", "browser", "quality", "ladder"],
                    help="stereo (YORO quality and cost ratio) runs at the first of --sizes; browser (the viewer page "
                         "in headless Chromium against a live server on loopback: fps, frame age) on the first of "
                         "--scenes; quality replays real head traces (default: ../shared/traces/*.txt) in each scene "
                         "for every method")
-    p.add_argument("traces", nargs="*", help="quality: QUASAR-format head trace files")
+    p.add_argument("traces", nargs="*", help="quality, ladder: QUASAR-format head trace files")
     p.add_argument("--scenes", default="builtin:courtyard,monastery")
-    p.add_argument("--sizes", default="960x540,1920x1080")
+    p.add_argument("--sizes", default=parser_default_sizes(), help="(ladder: 640x360 unless given)")
     p.add_argument("--frames", type=int, help="frames per run (default 10; quality: display frames, default 240 = "
-                                              "the 4 s window at 60 Hz)")
+                                              "the 4 s window at 60 Hz; ladder: display frames per run, 48)")
     p.add_argument("--json", help="also write the figures to this JSON file")
     p.add_argument("--seconds", type=float, default=20.0, help="browser: measuring time per size")
     p.add_argument("--screenshot", help="browser: save a screenshot of the page (last size) to this PNG")
@@ -367,7 +390,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", help="quality: WxH (default 640x360)")
     p.add_argument("--every", type=int, default=8, help="quality: score every K-th display frame")
     p.add_argument("--viewcell", type=float, default=0.5, help="quality: view-cell radius, metres")
-    p.add_argument("--out", help="quality: keep every run's summary, frames.csv and report.html under this folder")
+    p.add_argument("--out", help="quality: keep every run's summary, frames.csv and report.html under this folder; "
+                                 "ladder: output directory (default out/ladder)")
+    p.add_argument("--write", help="ladder: also write the Pareto front as this ladder file (the controller's: "
+                                   "protocol/ladder.json)")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demo", help="the live system on the built-in scene: server, link (20±10 ms) and client "
@@ -387,7 +413,8 @@ def main(argv: list[str] | None = None) -> int:
     from quadcast.render.traces import TraceError
     try:
         return args.func(args)
-    except (ValueError, SceneError, TraceError, GLUnavailableError, FileNotFoundError) as exc:
+    except (ValueError, SceneError, TraceError, GLUnavailableError, FileNotFoundError) as exc:  # RateTraceError,
+        # LadderError are ValueErrors
         print(f"quadcast {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -361,3 +361,163 @@ def format_quality_table(rows: list[dict]) -> str:
                      f"{f(pct(r['holes']), '.2f')} ({f(pct(r['holes_max']), '.1f')}) | {f(r['mbps'], '.2f')} | "
                      f"{f(r['residual_to_reference_bytes'], '.3f')} | {f(r.get('flip_vs_meshwarp'), '.3f')} |")
     return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------------------------------- ladder
+
+LADDER_TRACES = "../shared/traces/*.txt"
+"""The real head traces `bench ladder` measures on by default (QUASAR's format); it skips when there are none."""
+
+LADDER_START = (-1.5, 1.6, 4.0)
+"""Where a real trace's window starts in builtin:courtyard: in the open square, 4 m south of the fountain,
+moving along +X, with 3 m clear ahead."""
+
+
+def placed_window(trace: Trace, seconds: float, start=LADDER_START) -> Trace:
+    """`seconds` of a real trace from its middle, moved into the courtyard: its first pose at `start` (eye height
+    included), turned about the vertical so that it moves along +X; the head's motion relative to the path is kept."""
+    from scipy.spatial.transform import Rotation
+
+    from quadcast.render.traces import euler_to_rotation, rotation_to_euler
+    if trace.duration < seconds:
+        raise ValueError(f"trace {trace.name!r} lasts {trace.duration:.1f} s, less than the {seconds:g} s needed")
+    t0 = float(trace.times[0]) + (trace.duration - seconds) / 2
+    w = trace.slice(t0, t0 + seconds)
+    move = w.positions[-1] - w.positions[0]
+    heading = -np.arctan2(-move[2], move[0]) if np.hypot(move[0], move[2]) > 0.05 else 0.0
+    turn = Rotation.from_euler("y", heading)           # the horizontal direction of travel onto +X
+    positions = turn.apply(w.positions - w.positions[0]) + np.asarray(start)
+    euler = rotation_to_euler(turn * euler_to_rotation(w.euler_deg))
+    return Trace(f"{trace.name}@courtyard", w.times - w.times[0], positions, euler)
+
+
+def ladder_grid() -> list:
+    """The operating points `bench ladder` measures: uniform points over frame rate, CRF, quad thresholds and
+    hidden layers, and foveated points (merge thresholds and atlas resolution growing away from the view centre)."""
+    from quadcast.protocol.rate import OperatingPoint
+    points = []
+    for fps in (30, 20, 15, 10, 6):
+        for crf, quad, hidden in ((23, 1, 3), (23, 1, 1), (23, 4, 1), (28, 4, 1), (28, 4, 0), (33, 8, 0)):
+            points.append(OperatingPoint(f"f{fps:g}-c{crf}-q{quad}-h{hidden}", crf=crf, quad_scale=quad,
+                                         coarse_passes=3 if quad == 1 else 5, hidden_layers=hidden, fps=fps))
+    for crf, quad in ((28, 4), (33, 8)):
+        points.append(OperatingPoint(f"f12-c{crf}-q{quad}-h0", crf=crf, quad_scale=quad, coarse_passes=5,
+                                     hidden_layers=0, fps=12))
+    for fps, sigma, hidden in ((30, 5, 3), (30, 5, 1), (30, 10, 1), (20, 5, 1), (20, 10, 1), (15, 5, 1),
+                               (15, 10, 1)):
+        points.append(OperatingPoint(f"fov{sigma}-f{fps:g}-c23-h{hidden}", hidden_layers=hidden, fps=fps,
+                                     fovea_sigma_deg=sigma, fovea_max_scale=32, fovea_atlas=4))
+    for fps, sigma in ((30, 10), (20, 10), (15, 10), (15, 5)):
+        points.append(OperatingPoint(f"fov{sigma}-f{fps:g}-c28-q4-h0", crf=28, quad_scale=4, coarse_passes=5,
+                                     hidden_layers=0, fps=fps, fovea_sigma_deg=sigma, fovea_max_scale=32,
+                                     fovea_atlas=4))
+    return points
+
+
+def _ladder_point(point, traces: list[str], size: tuple[int, int], frames: int, every: int,
+                  latency: tuple[float, float]) -> list[dict]:
+    """One point on every trace (run in a process of its own: the GL objects of a run are not all released)."""
+    from quadcast.sim.evaluate import EvalSpec, run_eval
+    return [run_eval(EvalSpec(scene="builtin:courtyard", trace=t, method="quasar", latency_ms=latency[0],
+                              jitter_ms=latency[1], width=size[0], height=size[1], frames=frames, every=every,
+                              point=point)) for t in traces]
+
+
+def bench_ladder(traces: list[str] | None = None, size: tuple[int, int] = (640, 360), frames: int = 48,
+                 every: int = 4, latency: tuple[float, float] = (20.0, 10.0), out: Path | None = None,
+                 write: str | None = None, points: list | None = None, command: str = "",
+                 quiet: bool = False) -> list[dict]:
+    """Every point of :func:`ladder_grid` (or `points`) on each real trace (a `frames`/60 s window from its middle,
+    placed in builtin:courtyard by :func:`placed_window`), in virtual-time replay with no rate limit: Mbps, FLIP
+    and FLIP over the central 20 degrees, averaged over the traces. Prints the table and the Pareto front of (Mbps,
+    FLIP); writes `all.json`, `front.json` and `ladder.png` to `out`, and with `write` the ladder
+    (:func:`quadcast.protocol.rate.ladder_points`: the Pareto front at each frame-rate floor) as the file the rate
+    controller loads (`protocol/ladder.json`), with `command`. Points already in `out`/all.json with the same
+    settings and run are taken from there, not measured again. Returns one row per point."""
+    import glob
+    import json
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    from dataclasses import replace
+
+    from quadcast.protocol.rate import Ladder, ladder_points, pareto_front
+    from quadcast.render.traces import load_trace
+
+    paths = sorted(glob.glob(LADDER_TRACES)) if traces is None else traces
+    if not paths:
+        print(f"bench ladder: skipped, no traces ({LADDER_TRACES} matches nothing)", flush=True)
+        return []
+    out = Path(out) if out is not None else Path("out/ladder")
+    (out / "traces").mkdir(parents=True, exist_ok=True)
+    placed = []
+    for p in paths:
+        t = placed_window(load_trace(p), frames / 60.0 + 0.1)
+        path = out / "traces" / f"{Path(p).stem}.txt"
+        t.save(path)
+        placed.append(str(path))
+    grid = points if points is not None else ladder_grid()
+    run = {"size": list(size), "frames": frames, "every": every, "latency": list(latency),
+           "traces": [Path(p).stem for p in paths]}
+    known = {}
+    if (out / "all.json").exists():
+        known = {r["name"]: r for r in json.loads((out / "all.json").read_text()) if r.get("run") == run}
+    rows, measured = [], []
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), max_tasks_per_child=1)
+    for point in tqdm(grid, desc="ladder", unit="point", disable=quiet, file=sys.stderr):
+        old = known.get(point.name)
+        if old is not None and all(old.get(k) == v for k, v in point.knobs().items()):
+            row = old
+        else:
+            runs = pool.submit(_ladder_point, point, placed, size, frames, every, latency).result()
+            row = {"name": point.name, **point.knobs(), "mbps": float(np.mean([r["mbps"] for r in runs])),
+                   "flip": float(np.mean([r["flip"] for r in runs])),
+                   "flip_fovea": float(np.mean([r["flip_fovea"] for r in runs])), "run": run,
+                   "per_trace": {Path(t).stem: {k: r[k] for k in ("mbps", "flip", "flip_fovea")}
+                                 for t, r in zip(placed, runs)}}
+        rows.append(row)
+        measured.append(replace(point, mbps=row["mbps"], flip=row["flip"], flip_fovea=row["flip_fovea"]))
+        print(f"{point.name:24s} {row['mbps']:7.2f} Mbps  FLIP {row['flip']:.4f}  fovea {row['flip_fovea']:.4f}",
+              flush=True)
+    pool.shutdown()
+    front = pareto_front(measured)
+    ladder = Ladder(tuple(ladder_points(measured)), size, 30.0, command,
+                    f"Pareto fronts of (Mbps, FLIP) at each frame-rate floor over {len(measured)} points on "
+                    f"{len(placed)} real traces ({', '.join(Path(p).stem for p in paths)}), {frames} display "
+                    f"frames each from the middle, placed in builtin:courtyard, {latency[0]:g}+-{latency[1]:g} ms, "
+                    f"virtual-time replay, no rate limit")
+    (out / "all.json").write_text(json.dumps(rows, indent=1))
+    (out / "front.json").write_text(ladder.to_json())
+    if write:
+        Path(write).write_text(ladder.to_json())
+    plot_ladder(measured, front, list(ladder.points), out / "ladder.png")
+    print("\nladder (Pareto fronts at each frame-rate floor; * = on the front of all points):")
+    for p in ladder.points:
+        print(f"  {p.name:24s} {p.fps:4g} fps {p.mbps:7.2f} Mbps  FLIP {p.flip:.4f}  fovea {p.flip_fovea:.4f}"
+              f"{'  *' if p in front else ''}", flush=True)
+    return rows
+
+
+def plot_ladder(points: list, front: list, ladder: list, path: Path) -> Path:
+    """Every measured point (uniform and foveated) in (Mbps, FLIP), the Pareto front drawn through, the ladder's
+    points ringed."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(7, 4.2), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    for foveated, colour, label in ((False, "tab:blue", "uniform"), (True, "tab:orange", "foveated")):
+        sel = [p for p in points if p.foveated == foveated]
+        if sel:
+            ax.scatter([p.mbps for p in sel], [p.flip for p in sel], s=14, color=colour, alpha=0.6, label=label)
+    ax.plot([p.mbps for p in front], [p.flip for p in front], color="black", lw=1.2, label="Pareto front")
+    ax.scatter([p.mbps for p in ladder], [p.flip for p in ladder], s=60, facecolors="none", edgecolors="black",
+               label="the ladder (front at each frame-rate floor)")
+    for p in ladder:
+        ax.annotate(f"{p.fps:g}", (p.mbps, p.flip), textcoords="offset points", xytext=(4, 3), fontsize=6)
+    ax.set_xlabel("Mbit/s")
+    ax.set_ylabel("FLIP ↓")
+    ax.set_title("Operating points (quadcast bench ladder)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.savefig(path, metadata={"Software": None})
+    return path

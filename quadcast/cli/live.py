@@ -75,7 +75,8 @@ def cmd_server(args) -> int:
                        handshake_timeout=args.handshake_timeout, idle_timeout=args.idle_timeout,
                        retry_after=args.retry_after, tls_cert=args.tls_cert, tls_key=args.tls_key,
                        allow_plaintext_token=args.allow_plaintext_token,
-                       max_peer_connections=args.max_peer_connections, stun=args.stun)
+                       max_peer_connections=args.max_peer_connections, stun=args.stun, adapt=args.adapt,
+                       target_mbps=args.target_mbps, ladder=args.ladder)
 
     async def main() -> None:
         server = LiveServer(cfg, make_server, transport=args.transport)
@@ -155,12 +156,15 @@ def cmd_client(args) -> int:
 
 # -------------------------------------------------------------------------------------------------- link
 
-def link_models(delay: str, jitter: str, rate: str | None, loss: str, seed: int):
+def link_models(delay: str, jitter: str, rate: str | None, loss: str, seed: int, rate_trace: str | None = None):
     """The (up, down) :class:`quadcast.sim.link.LinkModel` pair of ``quadcast link``: the same shaping both ways, seeds
-    ``seed`` (client -> server) and ``seed + 1`` (server -> client)."""
+    ``seed`` (client -> server) and ``seed + 1`` (server -> client); with ``rate_trace`` (a Mahimahi file or
+    builtin:NAME) the server -> client direction follows it instead of ``rate``, from the link's start."""
     from quadcast.sim.proxy import parse_link_args
-    return (parse_link_args(delay, jitter, rate, loss, seed=seed),
-            parse_link_args(delay, jitter, rate, loss, seed=seed + 1))
+    from quadcast.sim.ratetrace import resolve_rate_trace
+    down = parse_link_args(delay, jitter, None if rate_trace else rate, loss, seed=seed + 1,
+                           rate_trace=resolve_rate_trace(rate_trace) if rate_trace else None)
+    return parse_link_args(delay, jitter, rate, loss, seed=seed), down
 
 
 def cmd_link(args) -> int:
@@ -169,7 +173,7 @@ def cmd_link(args) -> int:
     _setup_logging(args.verbose)
     to_host, to_port = parse_hostport(args.to)
     check_bind(args.host, "x" if args.public else "", allow_plaintext_token=True)   # the link holds no token
-    up, down = link_models(args.delay, args.jitter, args.rate, args.loss, args.seed)
+    up, down = link_models(args.delay, args.jitter, args.rate, args.loss, args.seed, args.rate_trace)
     proxy = LinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down)
 
     def report() -> None:
@@ -180,8 +184,11 @@ def cmd_link(args) -> int:
 
     async def main() -> None:
         await proxy.start()
+        rate = args.rate or "unlimited"
+        if args.rate_trace:
+            rate = f"{rate} up, {args.rate_trace} down"
         print(f"link: listening on {args.host}:{proxy.port} -> {to_host}:{to_port} (delay {args.delay}, jitter "
-              f"{args.jitter}, rate {args.rate or 'unlimited'}, loss {args.loss})", flush=True)
+              f"{args.jitter}, rate {rate}, loss {args.loss})", flush=True)
         await proxy.serve_forever()
 
     asyncio.run(_run_until_signal(main(), on_stop=report))
@@ -219,6 +226,11 @@ def add_live_commands(sub) -> None:
     p.add_argument("--lead-ms", type=float, default=40.0,
                    help="render for the pose predicted this far beyond the measured encode time")
     p.add_argument("--no-predict", action="store_true", help="render the last received pose as is")
+    p.add_argument("--adapt", action="store_true",
+                   help="rate adaptation: each session's controller estimates the link from the client's receive "
+                        "reports and picks each frame's operating point from the measured ladder (quasar)")
+    p.add_argument("--target-mbps", type=float, help="the rate controller's ceiling, Mbit/s (implies --adapt)")
+    p.add_argument("--ladder", help="the operating points' ladder file (default: the measured one shipped)")
     g = p.add_argument_group("limits")
     g.add_argument("--max-sessions", type=int, default=lim.max_sessions,
                    help="sessions at once; beyond, a client is told 'busy, retry after N s' (default %(default)s)")
@@ -288,6 +300,9 @@ def add_live_commands(sub) -> None:
     p.add_argument("--delay", default="20ms", help="one-way delay, e.g. 20ms")
     p.add_argument("--jitter", default="10ms", help="uniform jitter, e.g. 10ms")
     p.add_argument("--rate", help="rate cap per direction, e.g. 200mbit")
+    p.add_argument("--rate-trace", help="server -> client capacity over time instead of --rate: a Mahimahi trace "
+                                        "(one line per 1500-byte delivery opportunity, ms; it repeats) or "
+                                        "builtin:const-20|step-100-15-100|sawtooth-10-40")
     p.add_argument("--loss", default="0%", help="message loss per direction, e.g. 0.5%%")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-v", "--verbose", action="store_true")

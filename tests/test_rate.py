@@ -1,0 +1,239 @@
+"""Rate adaptation (quadcast.protocol.rate): operating points, the ladder, and the controller in the session core,
+driven through the virtual-time replay with GL-free stand-ins for the method's two halves (frame sizes follow the
+operating point, tests/stubs.py), over fixed-rate and Mahimahi-trace links."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from quadcast.protocol.rate import (Ladder, LadderError, OperatingPoint, RateConfig, RateController, fovea_scale,
+                                    ladder_points, load_ladder, pareto_front)
+from quadcast.protocol.session import SendReport, ServerSession, ServerSessionConfig, ClientSession
+from quadcast.render.traces import resolve_trace
+from quadcast.sim.ratetrace import trace_from_schedule
+from quadcast.sim.replay import ReplayConfig, replay
+from stubs import StubClient, StubServer
+
+LADDER = Ladder(tuple(OperatingPoint(f"p{i}", crf=23 + i, mbps=m, flip=0.2 - 0.02 * i)
+                      for i, m in enumerate((2.0, 4.0, 8.0, 12.0, 16.0, 24.0, 32.0, 64.0))), command="test ladder")
+LATENCY_MS = 50.0
+BOUND_MS = LATENCY_MS + 2 * 1000 / 30          # the acceptance bound on frame age: latency + two frame intervals
+
+
+# ----------------------------------------------------------------------------------------- points, ladder
+
+def test_operating_points_check_and_parse():
+    p = OperatingPoint.parse("crf=30,quad=4,hidden=1,fps=15,sigma=8,atlas=4")
+    assert (p.crf, p.quad_scale, p.hidden_layers, p.fps, p.fovea_sigma_deg, p.fovea_atlas) == (30, 4, 1, 15, 8, 4)
+    assert p.foveated and not OperatingPoint().foveated
+    assert p.knobs() == OperatingPoint.from_dict(p.to_dict()).knobs()
+    for spec, match in (("crf=99", "crf must be in"), ("hidden=-1", "hidden_layers must be >= 0"),
+                        ("quad=0", "quad_scale must be > 0"), ("fps=0", "fps must be in"), ("bogus=1", "key=value"),
+                        ("crf=x", "crf needs a number"), ("atlas=16", "fovea_atlas must be in")):
+        with pytest.raises(LadderError, match=match):
+            OperatingPoint.parse(spec)
+    with pytest.raises(LadderError, match="unknown field"):
+        OperatingPoint.from_dict({"name": "x", "speed": 3})
+
+
+def test_fovea_scale_is_one_in_the_fovea_and_grows_to_its_cap():
+    e = np.array([0.0, 10.0, 15.0, 20.0, 60.0])
+    s = fovea_scale(e, 10.0, 5.0, 1.0, 16.0)
+    assert s[0] == s[1] == 1.0 and 1.0 < s[2] < s[3] and s[4] == 16.0
+    assert s[2] == pytest.approx(np.exp(0.5))            # one sigma past the fovea: S = e^-1/2
+    assert np.all(fovea_scale(e, 10.0, 0.0, 1.0, 16.0) == 1.0)   # sigma 0: uniform
+
+
+def test_ladder_round_trip_pareto_front_and_errors(tmp_path):
+    pts = [OperatingPoint("a", mbps=10, flip=0.10), OperatingPoint("b", mbps=5, flip=0.12),
+           OperatingPoint("c", mbps=8, flip=0.13), OperatingPoint("d", mbps=20, flip=0.10)]
+    assert [p.name for p in pareto_front(pts)] == ["b", "a"]     # c: dearer and worse than b; d: dearer than a
+    path = tmp_path / "ladder.json"
+    path.write_text(Ladder(tuple(pareto_front(pts)), command="cmd").to_json())
+    back = load_ladder(path)
+    assert [p.name for p in back.points] == ["b", "a"] and back.command == "cmd" and back.index("a") == 1
+    path.write_text(json.dumps({"points": [{"name": "x", "mbps": 5}, {"name": "y", "mbps": 4}]}))
+    with pytest.raises(LadderError, match="strictly rising mbps"):
+        load_ladder(path)
+    path.write_text("{")
+    with pytest.raises(LadderError, match="not JSON"):
+        load_ladder(path)
+    with pytest.raises(LadderError, match="no point named"):
+        back.index("z")
+
+
+def test_ladder_points_keep_the_best_of_each_frame_rate():
+    pts = [OperatingPoint("slow-cheap", fps=10, mbps=4, flip=0.08), OperatingPoint("fast-cheap", fps=30, mbps=5,
+                                                                                   flip=0.09),
+           OperatingPoint("fast", fps=30, mbps=10, flip=0.07), OperatingPoint("slow-worse", fps=10, mbps=6, flip=0.10)]
+    # the front of all points would drop fast-cheap (slow-cheap is cheaper and better without a rate limit)
+    assert [p.name for p in pareto_front(pts)] == ["slow-cheap", "fast"]
+    assert [p.name for p in ladder_points(pts)] == ["slow-cheap", "fast-cheap", "fast"]
+
+
+def test_on_a_slow_link_the_controller_prefers_fresh_frames():
+    ladder = Ladder((OperatingPoint("slow", fps=6, mbps=4, flip=0.08), OperatingPoint("fast", fps=30, mbps=4.5,
+                                                                                      flip=0.09),
+                     OperatingPoint("top", fps=30, mbps=20, flip=0.07)))
+    c = RateController(RateConfig(ladder))
+    # 5 Mbit/s: a 6 fps frame (0.67 Mbit) takes 133 ms to cross, and is shown 167 ms: too old; 30 fps frames fit
+    assert c.expected_age_s(0, 1 / 30, 5.0) > 0.1 > c.expected_age_s(1, 1 / 30, 5.0)
+    assert c._best_fitting(4.9, 1 / 30, 5.0) == 1
+    assert c._best_fitting(4.9, 1 / 30, None) == 0       # link unknown: the best FLIP that fits
+
+
+def test_the_shipped_ladder_is_measured():
+    ladder = load_ladder()
+    assert len(ladder) >= 4 and "quadcast" in ladder.command and "bench ladder" in ladder.command
+    assert all(p.mbps is not None and p.flip is not None for p in ladder.points)
+    assert [p.name for p in ladder_points(list(ladder.points))] == [p.name for p in ladder.points]
+    assert ladder[-1].mbps > 3 * ladder[0].mbps          # a range wide enough to fit links far apart
+    assert {p.fps for p in ladder.points} >= {30, 15}
+
+
+# ------------------------------------------------------------------------------------ the controller alone
+
+def _controller(**kw) -> RateController:
+    return RateController(RateConfig(LADDER, **kw))
+
+
+def test_start_point_ceiling_and_slow_start_window():
+    assert _controller().point.name == "p1"                       # the best fitting start_mbps (6)
+    assert _controller(start_mbps=100).point.name == "p7"
+    c = _controller(start_mbps=100, target_mbps=13)
+    assert c.point.name == "p3"                                   # the ceiling wins
+    # no report yet: at most initial_frames frames in flight
+    for i in range(4):
+        assert c.may_start(i / 30, 1 / 30)
+        c.frame_sent(i / 30, i, 50_000)
+    assert not c.may_start(4 / 30, 1 / 30) and c.state.frames_paced == 1
+    # a frame sent 2 s ago with no report at all: the client does not report, nothing is paced any more
+    assert c.may_start(2.2, 1 / 30)
+
+
+def _feed(c: RateController, rate_mbit: float, seconds: float, t0: float = 0.0, size_of=None, delay=0.05):
+    """Frames at 30 Hz of the controller's chosen size through a link of `rate_mbit`; reports after 2x `delay`."""
+    free, pending, t, fid = t0, [], t0, int(t0 * 1000)
+    c.history = []
+    while t < t0 + seconds:
+        while pending and pending[0][0] <= t:
+            _, entry = pending.pop(0)
+            c.report(entry[2] + delay, [entry], 1 / 30)
+        if c.may_start(t, 1 / 30):
+            index = c.choose(t, 1 / 30)
+            c.history.append((t, index))
+            size = size_of(index) if size_of else int(LADDER[index].mbps * 1e6 / 8 / 30)
+            c.frame_sent(t, fid, size, index)
+            free = max(free, t) + size * 8 / (rate_mbit * 1e6)
+            pending.append((free + delay * 2, (fid, size, free + delay)))
+            pending.sort()
+            fid += 1
+        t += 1 / 30
+    return c
+
+
+def test_overuse_moves_down_to_what_fits_and_measures_the_capacity():
+    c = _feed(_controller(start_mbps=100), 12.0, 3.0)
+    assert c.state.decreases >= 1
+    assert c.state.capacity_mbps == pytest.approx(12.0, rel=0.15)
+    late = [LADDER[i].mbps for t, i in c.history if t > 1.5]
+    assert np.mean([m <= 12.0 for m in late]) > 0.75               # the point fits the link (but for brief probes)
+    assert np.mean([m >= 8.0 for m in late]) > 0.75                # ... and is not needlessly low
+
+
+def test_hysteresis_does_not_retry_a_failed_rate_at_once():
+    c = _feed(_controller(start_mbps=100), 12.0, 3.0)
+    index, increases = c.index, c.state.increases
+    # the next point up (16) failed at 12 Mbit/s: within hold_up_s and the headroom's growth it is not tried again
+    t = 3.0
+    assert c.choose(t, 1 / 30) == index
+    assert c.headroom_mbps(t) < LADDER[index + 1].mbps or c.state.increases == increases
+
+
+# ---------------------------------------------------------------------------- through the replay driver
+
+def _run(seconds: float, adapt: bool = True, scale: float = 1.0, start_mbps: float = 10.0, **link):
+    cfg = ReplayConfig(latency_ms=LATENCY_MS, jitter_ms=20.0, seed=1,
+                       rate=RateConfig(LADDER, start_mbps=start_mbps) if adapt else None, **link)
+    server = StubServer(size=100_000, every=5, scale=scale, first_reference=True)
+    return replay(resolve_trace("builtin:walk"), server, StubClient(), cfg, int(seconds * 60))
+
+
+def _ages(totals, t0: float, t1: float) -> np.ndarray:
+    return np.array([a for t, a, _ in totals.ages if t0 <= t < t1 and np.isfinite(a)])
+
+
+def test_a_fixed_link_gets_the_best_point_that_fits_and_fresh_frames():
+    # frames 2x bigger than the ladder says (another size, another scene): the controller goes by what it sees
+    for scale in (1.0, 2.0):
+        totals = _run(6.0, scale=scale, rate_mbit=20.0)
+        late = [f for f in totals.sent if f.t_sent > 2.0]
+        sent = sum(f.bytes for f in late) * 8 / (late[-1].t_sent - late[0].t_sent) / 1e6
+        assert sent <= 20.0 and sent > 10.0, sent
+        assert np.mean(_ages(totals, 2.0, 6.0)) < BOUND_MS
+        assert np.mean([a for _, a, _ in totals.ages if np.isfinite(a)]) < BOUND_MS
+        assert totals.rate.capacity_mbps == pytest.approx(20.0, rel=0.25)
+
+
+def test_without_adaptation_a_slow_link_queues_and_frames_get_old():
+    totals = _run(4.0, adapt=False, rate_mbit=20.0)
+    assert np.mean(_ages(totals, 2.0, 4.0)) > 3 * BOUND_MS
+
+
+def test_a_step_down_and_up_is_followed_within_half_a_second():
+    step = trace_from_schedule([(2.0, 100.0), (2.0, 15.0), (2.0, 100.0)], "step")
+    totals = _run(6.0, rate_trace=step, start_mbps=100.0)
+    points = [(f.t_sent, f.point_index) for f in totals.sent]
+    top_before = max(i for t, i in points if 1.0 < t < 2.0)
+    assert LADDER[top_before].mbps > 30                           # it climbed while the link was fast
+    # down: a lower point within 0.5 s of the step, and frames fresh again within 0.5 s
+    after = [i for t, i in points if 2.0 < t <= 2.5]
+    assert min(after) < top_before
+    slow = [f for f in totals.sent if 2.5 < f.t_sent < 4.0]      # at most brief probes above what fits
+    assert sum(f.bytes for f in slow) * 8 / 1.5 / 1e6 <= 15.0
+    assert np.mean([LADDER[f.point_index].mbps <= 15 for f in slow]) > 0.75
+    assert np.mean(_ages(totals, 2.5, 4.0)) < BOUND_MS
+    assert max(_ages(totals, 2.6, 4.0)) < 2 * BOUND_MS
+    # up: fresh frames within 0.5 s, and the controller climbs again
+    assert np.mean(_ages(totals, 4.5, 6.0)) < BOUND_MS
+    assert max(i for t, i in points if t > 4.5) > max(i for t, i in points if 3.0 < t < 4.0)
+
+
+def test_a_client_that_never_reports_is_not_held_back():
+    s = ServerSession(ServerSessionConfig(clock_offset_s=0.0, rate=RateConfig(LADDER)))
+    started = 0
+    for k in range(150):                                           # 5 s of poses, frames sent, no report ever
+        t = k / 30
+        d = s.pose_received(t, t, np.array([0.0, 1.6, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]))
+        if d is not None:
+            started += 1
+            s.frame_encoded(t, f"f{k}", True, 0.0)
+            s.next_to_send()
+            s.frame_sent(t, k, 60_000)
+    assert started >= 90          # after lost_after_s (2 s) without any report, every pose starts a frame
+    assert s.counters.reports == 0
+
+
+# ------------------------------------------------------------------------------------------ session parts
+
+def test_a_fixed_point_caps_the_frame_rate_through_the_timer():
+    point = OperatingPoint("slow", fps=10)
+    s = ServerSession(ServerSessionConfig(clock_offset_s=0.0, point=point))
+    p, q = np.array([0.0, 1.6, 0.0]), np.array([0.0, 0.0, 0.0, 1.0])
+    d = s.pose_received(0.0, 0.0, p, q)
+    assert d.point is point and d.point_index is None
+    s.frame_encoded(0.01, "f0", True, 0.01)
+    assert s.pose_received(1 / 30, 1 / 30, p, q) is None           # 10 fps: the next frame waits
+    assert s.timer() == pytest.approx(0.1)
+    assert s.handle_timer(0.1).started == 0.1
+    with pytest.raises(ValueError, match="exclude each other"):
+        ServerSessionConfig(point=point, rate=RateConfig(LADDER))
+
+
+def test_the_client_reports_each_arrival():
+    c = ClientSession()
+    r = c.frame_arrived(1.25, 7, 12_345)
+    assert isinstance(r, SendReport) and r.entries == ((7, 12_345, 1.25),)
+    assert c.counters.frames_arrived == 1
