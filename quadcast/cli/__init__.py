@@ -280,7 +280,7 @@ def _bench_quality(args) -> int:
 def cmd_demo(args) -> int:
     """The live system on the built-in scene: server, link (20±10 ms) and client as three processes on loopback."""
     from quadcast.cli.demo import run_demo
-    return run_demo(Path(args.out), quiet=args.quiet)
+    return run_demo(Path(args.out), quiet=args.quiet, compare=not args.no_compare)
 
 
 # -------------------------------------------------------------------------------------------------- main
@@ -399,6 +399,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the live system on the built-in scene: server, link (20±10 ms) and client "
                                     "processes on loopback; prints Mbps and FLIP/SSIM")
     p.add_argument("--out", default="out/demo")
+    p.add_argument("--no-compare", action="store_true",
+                   help="skip the same walk in virtual time afterwards (its FLIP is what the live run is held to)")
     p.set_defaults(func=cmd_demo)
 
     from quadcast.cli.live import add_live_commands
