@@ -454,14 +454,19 @@ class RateController:
 
     def _best_fitting(self, mbps: float, frame_interval_s: float, capacity_mbps: float | None = None) -> int:
         """The best point (lowest measured FLIP) whose predicted rate fits ``mbps`` and whose frames are fresh
-        enough on a link of ``capacity_mbps`` (``max_age_s``); if none is fresh enough, the freshest that fits; if
-        none fits, the lowest."""
+        enough on a link of ``capacity_mbps`` (``max_age_s``); if none is fresh enough, the freshest that fits halfway
+        between ``mbps`` and ``capacity_mbps``; if none fits, the lowest."""
         fits = [i for i in range(len(self.ladder)) if self.predicted_mbps(i, frame_interval_s) <= mbps]
         if not fits:
             return 0
         fresh = [i for i in fits if self._fresh(i, frame_interval_s, capacity_mbps)]
         if fresh:
             return min(fresh, key=lambda i: (self._flip[i], -i))
+        if capacity_mbps is not None and capacity_mbps > mbps:
+            # nothing fresh fits the target: give up half of its margin below the link for freshness (a low frame
+            # rate's frames are old however fast the link is)
+            limit = (mbps + capacity_mbps) / 2
+            fits = [i for i in range(len(self.ladder)) if self.predicted_mbps(i, frame_interval_s) <= limit]
         return min(fits, key=lambda i: self.expected_age_s(i, frame_interval_s, capacity_mbps))
 
     # -- events

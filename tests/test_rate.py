@@ -82,6 +82,10 @@ def test_on_a_slow_link_the_controller_prefers_fresh_frames():
     assert c.expected_age_s(0, 1 / 30, 5.0) > 0.1 > c.expected_age_s(1, 1 / 30, 5.0)
     assert c._best_fitting(4.9, 1 / 30, 5.0) == 1
     assert c._best_fitting(4.9, 1 / 30, None) == 0       # link unknown: the best FLIP that fits
+    # nothing fresh under the target (0.85 x 5.0): the fast point, within half the margin to the link, beats the
+    # slow one that fits the target but whose frames are shown old
+    assert c._best_fitting(4.25, 1 / 30, 5.0) == 1
+    assert c._best_fitting(4.25, 1 / 30, 4.3) == 0       # ... but not past that
 
 
 def test_the_shipped_ladder_is_measured():
