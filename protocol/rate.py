@@ -39,8 +39,9 @@ many bits, as long as the ladder allows). After ``hold_up_s`` of no overuse and 
 point that fits the ceiling (``target_mbps``) and a headroom that starts at the last measured capacity (or the
 rate of the last point that ran ``hold_up_s`` without overuse, if higher) and grows by ``probe_growth`` per
 second (hysteresis: a rate that just failed is not tried again at once). A point's rate is predicted from the bytes per frame observed at it
-(or, until it has been used, from the nearest observed point scaled by the ladder's measured ratio) times the
-frame rate. Frames are also *paced*: while the bytes sent and not yet reported exceed what the link holds in one
+over its reference cycle (self-contained and residual frames apart: a new CRF restarts the stream, so the first
+frame at a point is a large self-contained one) or, until it has been used, from the nearest observed point scaled
+by the ladder's measured ratio, times the frame rate. Frames are also *paced*: while the bytes sent and not yet reported exceed what the link holds in one
 round trip plus ``queue_target_s`` of queue, no new frame starts (:meth:`RateController.may_start`), so a backlog
 drains instead of being fed frames that would be stale when they arrive; and frames held back again and again
 (three within ``ack_window_s``) while the link queues (half the overuse threshold) mean the point sends more than
@@ -386,7 +387,8 @@ class RateController:
         self._sent: collections.OrderedDict[int, tuple[float, int, int]] = collections.OrderedDict()
         self._samples: collections.deque[_Sample] = collections.deque()
         self._rtts: collections.deque[tuple[float, float]] = collections.deque()   # (now, rtt)
-        self._bytes: dict[int, float] = {}          # EMA of bytes per frame observed at each point
+        self._bytes: dict[int, float] = {}          # EMA of a residual frame's bytes observed at each point
+        self._bytes_ref: dict[int, float] = {}      # ... and of a self-contained frame's
         self._sent_log: collections.deque[tuple[float, int]] = collections.deque()  # (t, bytes) of the last 1 s
         self._reports = 0
         self._first_sent: float | None = None
@@ -425,15 +427,37 @@ class RateController:
         p = self.ladder[i]
         return p.mbps * 1e6 / 8 / min(p.fps, self.ladder.fps)
 
+    def _observed_bytes(self, i: int) -> float | None:
+        """Bytes per frame observed at point ``i`` over its reference cycle: one self-contained frame and
+        ``reference_every - 1`` residual frames; a kind not yet seen there is estimated from the other with the
+        residual/reference ratio seen over all points (None before any frame of point ``i``)."""
+        ref, res = self._bytes_ref.get(i), self._bytes.get(i)
+        if ref is None and res is None:
+            return None
+        ratio = self._residual_ratio()
+        if ref is None:
+            ref = res / ratio
+        if res is None:
+            res = ref * ratio
+        n = max(1, self.ladder[i].reference_every)
+        return (ref + (n - 1) * res) / n
+
+    def _residual_ratio(self) -> float:
+        """Residual over self-contained frame bytes, from the points where both were seen (0.5 before)."""
+        both = [self._bytes[k] / self._bytes_ref[k] for k in self._bytes if k in self._bytes_ref]
+        return float(np.clip(np.median(both), 0.05, 1.0)) if both else 0.5
+
     def bytes_per_frame(self, i: int) -> float:
         """Predicted bytes per frame at point ``i``: as observed there, or as observed at the nearest point used,
         scaled by the ladder's ratio of the two (the ladder's own figure until any frame was sent)."""
-        if i in self._bytes:
-            return self._bytes[i]
+        own = self._observed_bytes(i)
+        if own is not None:
+            return own
         nominal = self._nominal_bytes(i)
-        if self._bytes:
-            j = min(self._bytes, key=lambda k: abs(math.log(self._nominal_bytes(k) / nominal)))
-            return self._bytes[j] * nominal / self._nominal_bytes(j)
+        seen = set(self._bytes) | set(self._bytes_ref)
+        if seen:
+            j = min(seen, key=lambda k: abs(math.log(self._nominal_bytes(k) / nominal)))
+            return self._observed_bytes(j) * nominal / self._nominal_bytes(j)
         return nominal
 
     def predicted_mbps(self, i: int, frame_interval_s: float) -> float:
@@ -471,16 +495,19 @@ class RateController:
 
     # -- events
 
-    def frame_sent(self, now: float, frame_id: int, size_bytes: int, index: int | None = None) -> None:
-        """The server handed frame ``frame_id`` (``size_bytes``, made at point ``index``) to the transport."""
+    def frame_sent(self, now: float, frame_id: int, size_bytes: int, index: int | None = None,
+                   self_contained: bool = False) -> None:
+        """The server handed frame ``frame_id`` (``size_bytes``, made at point ``index``; a self-contained frame if
+        ``self_contained``) to the transport."""
         index = self.state.index if index is None else index
         self._sent[int(frame_id)] = (float(now), int(size_bytes), index)
         if self._first_sent is None:
             self._first_sent = float(now)
         while len(self._sent) > 512:
             self._sent.popitem(last=False)
-        prev = self._bytes.get(index)
-        self._bytes[index] = size_bytes if prev is None else (1 - self.config.ema) * prev + self.config.ema * size_bytes
+        table = self._bytes_ref if self_contained else self._bytes
+        prev = table.get(index)
+        table[index] = size_bytes if prev is None else (1 - self.config.ema) * prev + self.config.ema * size_bytes
         self._sent_log.append((now, size_bytes))
         while self._sent_log and self._sent_log[0][0] < now - 1.0:
             self._sent_log.popleft()

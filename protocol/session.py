@@ -204,7 +204,7 @@ class ServerSession:
         self._encoding_point: int | None = None      # ladder index of the frame being encoded
         # (frame, ladder index) of the frames that may still be queued
         self._queued_points: collections.deque = collections.deque(maxlen=self.config.queue_frames + 2)
-        self._popped_point: int | None = None
+        self._popped_point: tuple[int | None, bool] | None = None    # (point, self-contained) of the frame popped
         self._paced = False                          # the last start was held back by the rate controller
 
     # -- events
@@ -244,14 +244,15 @@ class ServerSession:
         if self.queue.push(frame, self_contained):
             self._want_reference = True          # a frame was refused: the next one must stand alone
         if self.rate is not None:
-            self._queued_points.append((frame, self._encoding_point))
+            self._queued_points.append((frame, self._encoding_point, bool(self_contained)))
         return self._maybe_start(now)
 
     def frame_sent(self, now: float, frame_id: int, size_bytes: int) -> None:
         """The driver handed the frame :meth:`next_to_send` gave it last (id ``frame_id``, ``size_bytes`` of payload)
         to the transport."""
         if self.rate is not None:
-            self.rate.frame_sent(now, frame_id, size_bytes, self._popped_point)
+            index, self_contained = self._popped_point if self._popped_point is not None else (None, False)
+            self.rate.frame_sent(now, frame_id, size_bytes, index, self_contained)
 
     def report_received(self, now: float, entries) -> EncodeFrame | None:
         """The client's receive report (``(frame_id, bytes, t_arrive)`` entries, arrival on the client's clock)
@@ -305,7 +306,7 @@ class ServerSession:
         """The next frame for the transport, in order (None when the queue is empty)."""
         frame = self.queue.pop()
         if frame is not None and self.rate is not None:
-            self._popped_point = next((i for f, i in self._queued_points if f is frame), None)
+            self._popped_point = next(((i, sc) for f, i, sc in self._queued_points if f is frame), None)
         return frame
 
     # -- state

@@ -241,3 +241,21 @@ def test_the_client_reports_each_arrival():
     r = c.frame_arrived(1.25, 7, 12_345)
     assert isinstance(r, SendReport) and r.entries == ((7, 12_345, 1.25),)
     assert c.counters.frames_arrived == 1
+
+
+def test_a_points_rate_counts_its_self_contained_frame_once_per_reference_cycle():
+    # the first frame at a point is self-contained (a new CRF restarts the stream) and three times a residual's: the
+    # prediction is the cycle's mean (one such frame in reference_every = 5), not an average dominated by it
+    c = _controller()
+    i = c.index
+    c.frame_sent(0.0, 0, 300_000, i, self_contained=True)
+    c.frame_sent(0.1, 1, 100_000, i)
+    assert c.bytes_per_frame(i) == pytest.approx((300_000 + 4 * 100_000) / 5)
+    assert c.predicted_mbps(i, 1 / 30) == pytest.approx(140_000 * 8 * 30 / 1e6)
+    # a point seen only through its self-contained frame: its residuals at the ratio seen elsewhere (1/3 here)
+    j = i + 1
+    c.frame_sent(0.2, 2, 600_000, j, self_contained=True)
+    assert c.bytes_per_frame(j) == pytest.approx((600_000 + 4 * 200_000) / 5)
+    # an unused point: the nearest used one scaled by the ladder's ratio of the two
+    k = j + 1
+    assert c.bytes_per_frame(k) == pytest.approx(c.bytes_per_frame(j) * LADDER[k].mbps / LADDER[j].mbps)
