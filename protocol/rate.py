@@ -387,7 +387,7 @@ class RateController:
         self._sent: collections.OrderedDict[int, tuple[float, int, int]] = collections.OrderedDict()
         self._samples: collections.deque[_Sample] = collections.deque()
         self._rtts: collections.deque[tuple[float, float]] = collections.deque()   # (now, rtt)
-        self._bytes: dict[int, float] = {}          # EMA of a residual frame's bytes observed at each point
+        self._bytes_res: dict[int, float] = {}      # EMA of a residual frame's bytes observed at each point
         self._bytes_ref: dict[int, float] = {}      # ... and of a self-contained frame's
         self._sent_log: collections.deque[tuple[float, int]] = collections.deque()  # (t, bytes) of the last 1 s
         self._reports = 0
@@ -431,7 +431,7 @@ class RateController:
         """Bytes per frame observed at point ``i`` over its reference cycle: one self-contained frame and
         ``reference_every - 1`` residual frames; a kind not yet seen there is estimated from the other with the
         residual/reference ratio seen over all points (None before any frame of point ``i``)."""
-        ref, res = self._bytes_ref.get(i), self._bytes.get(i)
+        ref, res = self._bytes_ref.get(i), self._bytes_res.get(i)
         if ref is None and res is None:
             return None
         ratio = self._residual_ratio()
@@ -444,17 +444,18 @@ class RateController:
 
     def _residual_ratio(self) -> float:
         """Residual over self-contained frame bytes, from the points where both were seen (0.5 before)."""
-        both = [self._bytes[k] / self._bytes_ref[k] for k in self._bytes if k in self._bytes_ref]
+        both = [self._bytes_res[k] / self._bytes_ref[k] for k in self._bytes_res if k in self._bytes_ref]
         return float(np.clip(np.median(both), 0.05, 1.0)) if both else 0.5
 
     def bytes_per_frame(self, i: int) -> float:
-        """Predicted bytes per frame at point ``i``: as observed there, or as observed at the nearest point used,
-        scaled by the ladder's ratio of the two (the ladder's own figure until any frame was sent)."""
+        """Predicted bytes per frame at point ``i``: as observed there over its reference cycle, or as observed at
+        the nearest point used, scaled by the ladder's ratio of the two (the ladder's own figure until any frame was
+        sent)."""
         own = self._observed_bytes(i)
         if own is not None:
             return own
         nominal = self._nominal_bytes(i)
-        seen = set(self._bytes) | set(self._bytes_ref)
+        seen = set(self._bytes_res) | set(self._bytes_ref)
         if seen:
             j = min(seen, key=lambda k: abs(math.log(self._nominal_bytes(k) / nominal)))
             return self._observed_bytes(j) * nominal / self._nominal_bytes(j)
@@ -505,7 +506,7 @@ class RateController:
             self._first_sent = float(now)
         while len(self._sent) > 512:
             self._sent.popitem(last=False)
-        table = self._bytes_ref if self_contained else self._bytes
+        table = self._bytes_ref if self_contained else self._bytes_res
         prev = table.get(index)
         table[index] = size_bytes if prev is None else (1 - self.config.ema) * prev + self.config.ema * size_bytes
         self._sent_log.append((now, size_bytes))

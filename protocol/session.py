@@ -202,9 +202,9 @@ class ServerSession:
         self.rate = RateController(self.config.rate) if self.config.rate is not None else None
         self.pose_interval_s: float | None = None   # running estimate of the time between poses
         self._encoding_point: int | None = None      # ladder index of the frame being encoded
-        # (frame, ladder index) of the frames that may still be queued
+        # (frame, ladder index, self-contained) of the frames that may still be queued
         self._queued_points: collections.deque = collections.deque(maxlen=self.config.queue_frames + 2)
-        self._popped_point: tuple[int | None, bool] | None = None    # (point, self-contained) of the frame popped
+        self._popped_point: tuple[int | None, bool] = (None, False)    # (point, self-contained) of the frame popped
         self._paced = False                          # the last start was held back by the rate controller
 
     # -- events
@@ -251,8 +251,7 @@ class ServerSession:
         """The driver handed the frame :meth:`next_to_send` gave it last (id ``frame_id``, ``size_bytes`` of payload)
         to the transport."""
         if self.rate is not None:
-            index, self_contained = self._popped_point if self._popped_point is not None else (None, False)
-            self.rate.frame_sent(now, frame_id, size_bytes, index, self_contained)
+            self.rate.frame_sent(now, frame_id, size_bytes, *self._popped_point)
 
     def report_received(self, now: float, entries) -> EncodeFrame | None:
         """The client's receive report (``(frame_id, bytes, t_arrive)`` entries, arrival on the client's clock)
@@ -306,7 +305,7 @@ class ServerSession:
         """The next frame for the transport, in order (None when the queue is empty)."""
         frame = self.queue.pop()
         if frame is not None and self.rate is not None:
-            self._popped_point = next(((i, sc) for f, i, sc in self._queued_points if f is frame), None)
+            self._popped_point = next(((i, sc) for f, i, sc in self._queued_points if f is frame), (None, False))
         return frame
 
     # -- state
