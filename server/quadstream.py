@@ -34,6 +34,7 @@ class QuadStreamSettings:
     wide_scale: float = 0.5
     covered_tolerance: float = 0.01  # relative depth within which a pixel counts as already covered
     zstd_level: int = 3
+    depth_bits: int | None = 12          # quad depths' mantissa bits on the wire (protocol.quads.round_mantissa)
     video: VideoSettings = field(default_factory=VideoSettings)
 
 
@@ -116,7 +117,7 @@ class QuadStreamServer(MethodServer):
 
         t0 = time.perf_counter()
         qframe = QuadFrame(layers)
-        geometry = encode_quad_frame(qframe, s.zstd_level)
+        geometry = encode_quad_frame(qframe, s.zstd_level, s.depth_bits)
         ms["zstd"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         self.atlas.clear()

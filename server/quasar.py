@@ -45,6 +45,7 @@ class QuasarSettings:
     connectivity: float = 0.001          # EDP: relative depth gap that is still the same surface
     change_threshold: float = 0.01       # relative depth change that makes a reference pixel "updated"
     zstd_level: int = 3
+    depth_bits: int | None = 12          # quad depths' mantissa bits on the wire (protocol.quads.round_mantissa)
     video: VideoSettings = field(default_factory=lambda: VideoSettings(crf=DEFAULT_CRF["quasar"]))
 
     def __post_init__(self):
@@ -280,7 +281,7 @@ class QuasarServer(MethodServer):
         t0 = time.perf_counter()
         frame_type = FrameType.REFERENCE if is_reference else FrameType.RESIDUAL
         qframe = QuadFrame(layers)
-        geometry = encode_quad_frame(qframe, s.zstd_level)
+        geometry = encode_quad_frame(qframe, s.zstd_level, s.depth_bits)
         ms["zstd"] = (time.perf_counter() - t0) * 1e3
 
         t0 = time.perf_counter()

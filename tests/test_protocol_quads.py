@@ -31,6 +31,7 @@ from quadcast.protocol.quads import (
     pack_quad_words,
     packed_size_bits_per_quad,
     quad_frame_stats,
+    round_mantissa,
     unpack_normals,
     unpack_quad_words,
 )
@@ -605,3 +606,45 @@ def test_columnar_layout_beats_interleaved() -> None:
     stats = quad_frame_stats(frame, level=3)
     assert stats.raw_payload_bytes == records.nbytes
     assert stats.compressed_payload_bytes < 0.9 * interleaved, (stats.compressed_payload_bytes, interleaved)
+
+
+# ---------------------------------------------------------------------------
+# Depths rounded on the wire
+# ---------------------------------------------------------------------------
+
+
+@DETERMINISTIC
+@given(hnp.arrays(np.float32, 64, elements=st.floats(-2.0 ** 127, 2.0 ** 127, width=32, allow_subnormal=False)),
+       st.integers(1, 23))
+def test_round_mantissa_is_nearest_within_its_bound(depth: np.ndarray, bits: int) -> None:
+    rounded = round_mantissa(depth, bits)
+    assert rounded.dtype == np.float32 and np.all(np.isfinite(rounded))
+    assert not np.any(rounded.view(np.uint32) & np.uint32((1 << (23 - bits)) - 1))
+    d = depth.astype(np.float64)
+    assert np.all(np.abs(rounded - d) <= np.abs(d) * 2.0 ** -(bits + 1) * (1 + 1e-12))
+    if bits == 23:
+        assert np.array_equal(rounded, depth)
+
+
+def test_round_mantissa_rejects_a_bad_bit_count() -> None:
+    huge = np.array([np.finfo(np.float32).max], np.float32)
+    assert round_mantissa(huge, 4)[0] == huge[0]          # would round past the largest float32: kept
+    for bad in (0, 24, 2.5, True):
+        with pytest.raises(ValueError, match="depth_bits"):
+            round_mantissa(np.ones(3, np.float32), bad)
+
+
+def test_rounded_depths_decode_as_sent_and_make_the_blob_smaller() -> None:
+    frame = smooth_frame()
+    rng = np.random.default_rng(3)           # rendered depths: a smooth surface with float noise in the low bits
+    quads = frame.layers[0].quads
+    noisy = QuadSet(x=quads.x, y=quads.y, size_log2=quads.size_log2, flattened=quads.flattened, alpha=quads.alpha,
+                    normal=quads.normal, depth=quads.depth * (1 + rng.normal(0, 1e-6, len(quads))).astype(np.float32),
+                    offsets=quads.offsets)
+    frame = QuadFrame([QuadLayer(LayerKind.VISIBLE, 512, 512, np.zeros(16), (0, 0, 512, 512), noisy)])
+    exact, rounded = encode_quad_frame(frame), encode_quad_frame(frame, depth_bits=12)
+    decoded = decode_quad_frame(rounded).layers[0].quads
+    assert np.array_equal(decoded.depth, round_mantissa(noisy.depth, 12))
+    assert np.array_equal(decoded.x, noisy.x) and np.array_equal(decoded.offsets, noisy.offsets)
+    assert len(rounded) < 0.85 * len(exact), (len(rounded), len(exact))
+    assert_frames_equal(frame, decode_quad_frame(exact))
