@@ -323,7 +323,7 @@ class RateConfig:
     probe_growth: float = 1.4
     queue_target_s: float = 0.06
     initial_frames: int = 4               # frames in flight before the first report
-    max_age_s: float | None = 0.08         # how much older than the latency frames may be (see expected_age_s)
+    max_age_s: float | None = 0.10         # how much older than the latency frames may be (see expected_age_s)
     ack_window_s: float = 0.5
     base_window_s: float = 10.0
     lost_after_s: float = 2.0
