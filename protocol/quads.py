@@ -600,13 +600,13 @@ def round_mantissa(values: Any, bits: int) -> np.ndarray:
     set: a relative error of at most ``2 ** -(bits + 1)``, and byte planes whose low bytes are zero. A value that
     would round past the largest float32 keeps its own."""
     bits = _u_int("depth_bits", bits, 1, 23)
-    out = np.ascontiguousarray(values, dtype="<f4").copy()
+    out = np.array(values, dtype="<f4", order="C")        # a copy: the caller's array is never changed
     if bits == 23 or out.size == 0:
         return out
     drop = 23 - bits
     u = out.view("<u4").astype(np.uint64)
     rounded = (((u + (1 << (drop - 1))) >> drop) << drop).astype("<u4").view("<f4")
-    return np.where(np.isfinite(rounded), rounded, out).astype("<f4")
+    return np.where(np.isfinite(rounded), rounded, out)
 
 
 def _packed_columns(frame: QuadFrame, depth_bits: int | None = None) -> list[np.ndarray]:
