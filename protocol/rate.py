@@ -24,13 +24,16 @@ Like WebRTC's delay-based congestion control it looks at one-way delay, not loss
   more on a link that jitters more), or the last frame's alone exceeds twice that, or half of it while the
   gradient exceeds ``overuse_trend``;
 - **capacity** from the frames that waited behind the one before them at the bottleneck (their arrival spacing is
-  the link's serialization; frames the pacing spaced out are not used).
+  the link's serialization; frames the pacing spaced out are not used), or from what the link delivered while
+  frames arrived late, whichever is lower (the delay's jitter can shorten a run's span; a late frame may be late
+  for its own serialization alone, so the delivered rate errs low).
 
 Decisions ("best" is the lowest measured FLIP): the session starts at the best point of at least ``start_fps``
 whose measured rate fits ``start_mbps``, and every ``hold_up_s`` / 4 while nothing queues it moves to the best
 point of up to twice its rate (a slow start), until the first overuse. On overuse, at once, the best point whose
-predicted rate fits ``backoff`` x capacity (half the current rate at the first sign of a growing queue, before any
-frame has queued behind another; then again with each frame that did, never above where the queueing began; a
+predicted rate fits ``backoff`` x capacity (at the first sign of a growing queue, before any frame has queued
+behind another: the delivered rate, or half the current rate without one; then again with each frame that did,
+never above where the queueing began; a
 step up that failed
 goes back to where it came from) and whose frames would be fresh:
 a frame is, on average, its serialization at the link's capacity plus half its frame interval older than the
@@ -560,16 +563,24 @@ class RateController:
             self._episode = [st.index, -1]
         self._last_overuse = now
         if capacity is not None:
+            delivered = self._delivery_mbps()        # jitter may shorten a run's span; what was delivered may not
+            if delivered is not None:
+                capacity = min(capacity, delivered)
             st.capacity_mbps = capacity
             self._headroom = (capacity, now)
             if pairs == self._episode[1]:
                 return                             # one decision per new frame that queued: its spacing is news
             target = c.backoff * capacity
         elif self._episode[1] < 0 and st.trend is not None and st.trend > trend_threshold:
-            # the first sign, a queue that grows but no spacing to measure yet: halve the rate
-            target = 0.5 * self.predicted_mbps(st.index, interval)
-            self._headroom = (target, now)
-            capacity = target                      # (for the freshness of what is chosen: the link carries less)
+            # the first sign, a queue that grows but no spacing to measure yet: what the link delivered while the
+            # frames queued, or, without that either, half the rate
+            capacity = self._delivery_mbps()
+            if capacity is not None:
+                target = c.backoff * capacity
+                st.capacity_mbps = capacity
+            else:
+                target = capacity = 0.5 * self.predicted_mbps(st.index, interval)
+            self._headroom = (capacity, now)       # (the freshness of what is chosen and the pacing go by it)
         else:
             return
         self._episode[1] = pairs
@@ -623,6 +634,25 @@ class RateController:
         if len(run) < 3 or span <= 1e-3:          # one pair alone: its two ends' jitter is most of its span
             return None, 0
         return sum(y.size for y in run[1:]) * 8 / span / 1e6, len(run) - 1
+
+    def _delivery_mbps(self) -> float | None:
+        """What the link delivered over the newest run of frames that each arrived late (their one-way delay more
+        than half the overuse threshold above the base), within the last ``2 * trend_frames`` frames: their bytes
+        over the time from when the first of them could have reached the bottleneck (its send time plus the base
+        delay, or the frame before it leaving, whichever is later) to the last one's arrival. A looser measure than
+        :meth:`_capacity_mbps` (a large frame arrives late for its own serialization alone) that errs low, where the
+        link idled between them: the safe side while the link queues. None without at least two late frames."""
+        recent = list(self._samples)[-2 * self.config.trend_frames:]
+        base, margin = self._base_owd(), self.overuse_threshold_s / 2
+        late = [s.owd - base > margin for s in recent[1:]]
+        if len(late) < 2 or not late[-1] or not late[-2]:
+            return None
+        start = len(late) - 1
+        while start > 0 and late[start - 1]:
+            start -= 1
+        before, run = recent[start], recent[start + 1:]
+        span = run[-1].t_arrive - max(before.t_arrive, run[0].t_sent + base)
+        return sum(s.size for s in run) * 8 / span / 1e6 if span > 1e-3 else None
 
     # -- decisions
 

@@ -156,6 +156,25 @@ def test_hysteresis_does_not_retry_a_failed_rate_at_once():
     assert c.headroom_mbps(t) < LADDER[index + 1].mbps or c.state.increases == increases
 
 
+def test_the_first_decision_goes_by_what_the_link_delivered():
+    """A link that drops to 12 Mbit/s under frames that each arrive late but never wait for the one before (no
+    spacing to measure): the first decision takes the rate the late frames were delivered at, not a guess."""
+    c = _controller(start_mbps=100)
+    top = c.index
+    sends = [(i / 30, i, 20_000, i / 30 + 0.052) for i in range(10)]          # 100 Mbit/s: 1.6 ms a frame
+    sends += [(0.40, 10, 50_000, 0.40 + 0.05 + 50_000 * 8 / 12e6),            # 12 Mbit/s from here on
+              (0.45, 11, 150_000, 0.45 + 0.05 + 150_000 * 8 / 12e6)]
+    for t, fid, size, _ in sends:
+        c.frame_sent(t, fid, size, top)
+    for t, fid, size, arrive in sends:
+        c.report(arrive + 0.05, [(fid, size, arrive)], 1 / 30)
+    assert c._capacity_mbps() == (None, 0)                 # frame 11 was sent after frame 10 had left
+    assert c.state.overuse and c.state.decreases == 1
+    assert 0.8 * 12 < c.state.capacity_mbps <= 12.0        # 200 kB over the 148 ms the link was busy with them
+    assert c.predicted_mbps(c.index, 1 / 30) <= 0.85 * c.state.capacity_mbps < c.predicted_mbps(top, 1 / 30) / 2
+    assert c.headroom_mbps(0.70) == pytest.approx(c.state.capacity_mbps, rel=0.05)
+
+
 # ---------------------------------------------------------------------------- through the replay driver
 
 def _run(seconds: float, adapt: bool = True, scale: float = 1.0, start_mbps: float = 10.0, **link):
