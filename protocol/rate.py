@@ -309,6 +309,14 @@ def load_ladder(path: str | Path | None = None) -> Ladder:
 
 # ------------------------------------------------------------------------------------------------ controller
 
+def _run_start(flags: list[bool], end: int) -> int:
+    """The first index of the run of true ``flags`` that ends at ``end`` (``flags[end]`` is true)."""
+    start = end
+    while start > 0 and flags[start - 1]:
+        start -= 1
+    return start
+
+
 @dataclass(frozen=True)
 class RateConfig:
     """The controller's ladder, ceiling and constants (see the module docstring)."""
@@ -626,9 +634,7 @@ class RateController:
         if not any(waited):
             return None, 0
         end = max(i for i, w in enumerate(waited) if w)
-        start = end
-        while start > 0 and waited[start - 1]:
-            start -= 1
+        start = _run_start(waited, end)
         run = recent[start:end + 2]
         span = run[-1].t_arrive - run[0].t_arrive
         if len(run) < 3 or span <= 1e-3:          # one pair alone: its two ends' jitter is most of its span
@@ -647,9 +653,7 @@ class RateController:
         late = [s.owd - base > margin for s in recent[1:]]
         if len(late) < 2 or not late[-1] or not late[-2]:
             return None
-        start = len(late) - 1
-        while start > 0 and late[start - 1]:
-            start -= 1
+        start = _run_start(late, len(late) - 1)
         before, run = recent[start], recent[start + 1:]
         span = run[-1].t_arrive - max(before.t_arrive, run[0].t_sent + base)
         return sum(s.size for s in run) * 8 / span / 1e6 if span > 1e-3 else None
