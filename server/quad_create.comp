@@ -5,8 +5,10 @@
 layout(local_size_x = 8, local_size_y = 8) in;
 #include "quad.glsl"
 #include "quad_entry.glsl"
+#include "quad_tiles.glsl"
 
-layout(std430, binding = 0) writeonly buffer QuadMap0 { QuadEntry quads[]; };
+layout(std430, binding = 0) writeonly buffer Planes0 { vec4 planes[]; };
+layout(std430, binding = 1) writeonly buffer Offsets0 { vec4 offs[]; };
 uniform sampler2D u_position;   // view-space position, w > 0 where geometry (GL rows: bottom first)
 uniform sampler2D u_normal;
 uniform usampler2D u_mask;      // optional: only pixels with mask != 0 get quads
@@ -36,19 +38,15 @@ bool load(ivec2 p, out vec3 n, out vec3 pos) {
 }
 
 void main() {
-    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
-    if (any(greaterThanEqual(p, u_size))) return;
+    ivec2 p = tile_invocation();
+    if (p.x < 0 || any(greaterThanEqual(p, u_size))) return;
     uint index = uint(p.y * u_size.x + p.x);
-    QuadEntry e;
-    e.plane = vec4(0.0);
-    for (int s = 0; s < 4; ++s) e.off[s] = vec4(0.0);
-
     vec3 n0, P0;
-    if (!load(p, n0, P0)) { quads[index] = e; return; }
+    if (!load(p, n0, P0)) { planes[index] = vec4(0.0); return; }
     if (u_exclude_inner) {
         vec2 r = P0.xy / -P0.z;
         if (r.x > u_inner_frustum.x && r.x < u_inner_frustum.y && r.y > u_inner_frustum.z && r.y < u_inner_frustum.w) {
-            quads[index] = e;
+            planes[index] = vec4(0.0);
             return;
         }
     }
@@ -66,30 +64,37 @@ void main() {
         if (ok[k]) { n = limit_grazing(n, normalize(-P), u_max_angle); nn[k] = n; dn[k] = dot(n, P); }
     }
 
-    // Offsets at the 3x3 lattice points (a, b) in half-pixel steps from the pixel's top-left corner.
+    // Offsets at the 3x3 lattice points (a, b) in half-pixel steps from the pixel's top-left corner. The
+    // neighbours touching lattice point (a, b) are listed out (dx in {-1, 0} at a = 0, {0} at a = 1, {0, 1} at
+    // a = 2, likewise dy; the pixel itself, k = 4, is its own plane): constant indices keep the arrays in
+    // registers.
     float lattice[9];
-    for (int b = 0; b < 3; ++b) for (int a = 0; a < 3; ++a) {
-        vec2 q = vec2(p) + 0.5 * vec2(a, b);
-        vec3 r = normalize(ray_dir(q));
-        float t_own = ray_plane_t(r, n0, d0);
-        float z_own = normalized_depth(depth_along(q, t_own));
-        float sum = t_own;
+#define LATTICE_BEGIN(A, B) { \
+        vec2 q = vec2(p) + 0.5 * vec2(A, B); \
+        vec3 r = normalize(ray_dir(q)); \
+        float t_own = ray_plane_t(r, n0, d0); \
+        float z_own = normalized_depth(depth_along(q, t_own)); \
+        float sum = t_own; \
         float count = 1.0;
-        // Neighbours touching lattice point (a, b): dx in {-1, 0} at a = 0, {0} at a = 1, {0, 1} at a = 2.
-        for (int dy = (b == 0 ? -1 : 0); dy <= (b == 2 ? 1 : 0); ++dy)
-            for (int dx = (a == 0 ? -1 : 0); dx <= (a == 2 ? 1 : 0); ++dx) {
-                int k = (dy + 1) * 3 + (dx + 1);
-                if (!ok[k]) continue;
-                float t = ray_plane_t(r, nn[k], dn[k]);
-                if (abs(normalized_depth(depth_along(q, t)) - z_own) < u_delta_max) { sum += t; count += 1.0; }
-            }
-        lattice[b * 3 + a] = sum / count - t_own;
+#define NEIGHBOUR(K) \
+        if (ok[K]) { \
+            float t = ray_plane_t(r, nn[K], dn[K]); \
+            if (abs(normalized_depth(depth_along(q, t)) - z_own) < u_delta_max) { sum += t; count += 1.0; } \
+        }
+#define LATTICE_END(A, B) lattice[(B) * 3 + (A)] = sum / count - t_own; }
+    LATTICE_BEGIN(0, 0) NEIGHBOUR(0) NEIGHBOUR(1) NEIGHBOUR(3) LATTICE_END(0, 0)
+    LATTICE_BEGIN(1, 0) NEIGHBOUR(1) LATTICE_END(1, 0)
+    LATTICE_BEGIN(2, 0) NEIGHBOUR(1) NEIGHBOUR(2) NEIGHBOUR(5) LATTICE_END(2, 0)
+    LATTICE_BEGIN(0, 1) NEIGHBOUR(3) LATTICE_END(0, 1)
+    LATTICE_BEGIN(1, 1) LATTICE_END(1, 1)
+    LATTICE_BEGIN(2, 1) NEIGHBOUR(5) LATTICE_END(2, 1)
+    LATTICE_BEGIN(0, 2) NEIGHBOUR(3) NEIGHBOUR(6) NEIGHBOUR(7) LATTICE_END(0, 2)
+    LATTICE_BEGIN(1, 2) NEIGHBOUR(7) LATTICE_END(1, 2)
+    LATTICE_BEGIN(2, 2) NEIGHBOUR(5) NEIGHBOUR(7) NEIGHBOUR(8) LATTICE_END(2, 2)
+    for (int s = 0; s < 4; ++s) {
+        vec4 o;
+        for (int c = 0; c < 4; ++c) o[c] = lattice[((s >> 1) + (c >> 1)) * 3 + (s & 1) + (c & 1)];
+        offs[4 * index + s] = o;
     }
-    for (int s = 0; s < 4; ++s) for (int c = 0; c < 4; ++c) {
-        int a = (s & 1) + (c & 1);
-        int b = (s >> 1) + (c >> 1);
-        e.off[s][c] = lattice[b * 3 + a];
-    }
-    e.plane = vec4(n0, -P0.z);
-    quads[index] = e;
+    planes[index] = vec4(n0, -P0.z);
 }

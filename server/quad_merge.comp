@@ -8,10 +8,13 @@
 layout(local_size_x = 8, local_size_y = 8) in;
 #include "quad.glsl"
 #include "quad_entry.glsl"
+#include "quad_tiles.glsl"
 #include "fovea.glsl"
 
-layout(std430, binding = 0) buffer QuadMapIn { QuadEntry qin[]; };
-layout(std430, binding = 1) writeonly buffer QuadMapOut { QuadEntry qout[]; };
+layout(std430, binding = 0) buffer PlanesIn { vec4 plane_in[]; };
+layout(std430, binding = 1) readonly buffer OffsetsIn { float off_in[]; };   // 16 per entry
+layout(std430, binding = 2) writeonly buffer PlanesOut { vec4 plane_out[]; };
+layout(std430, binding = 3) writeonly buffer OffsetsOut { vec4 off_out[]; }; // 4 per entry
 uniform ivec2 u_in_size;
 uniform ivec2 u_out_size;
 uniform int u_out_level;       // output quads span 2^u_out_level pixels
@@ -21,36 +24,33 @@ uniform float u_delta_max;
 uniform float u_max_angle;
 
 void main() {
-    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
-    if (any(greaterThanEqual(p, u_out_size))) return;
+    ivec2 p = tile_invocation();
+    if (p.x < 0 || any(greaterThanEqual(p, u_out_size))) return;
     uint out_index = uint(p.y * u_out_size.x + p.x);
-    QuadEntry m;
-    m.plane = vec4(0.0, 0.0, 0.0, EMPTY);
-    for (int s = 0; s < 4; ++s) m.off[s] = vec4(0.0);
 
-    QuadEntry child[4];
+    // Only the children's planes are read until the four of them are known to merge.
+    vec4 plane[4];
     uint child_index[4];
     int valid = 0, empty = 0;
     float child_size = float(1 << (u_out_level - 1));
     for (int c = 0; c < 4; ++c) {
         ivec2 q = 2 * p + ivec2(c & 1, c >> 1);
-        if (any(greaterThanEqual(q, u_in_size))) { empty++; child[c].plane = vec4(0.0); continue; }
+        if (any(greaterThanEqual(q, u_in_size))) { empty++; plane[c] = vec4(0.0); continue; }
         child_index[c] = uint(q.y * u_in_size.x + q.x);
-        child[c] = qin[child_index[c]];
-        if (child[c].plane.w > 0.0) valid++;
-        else if (child[c].plane.w == EMPTY) empty++;
+        plane[c] = plane_in[child_index[c]];
+        if (plane[c].w > 0.0) valid++;
+        else if (plane[c].w == EMPTY) empty++;
     }
-    if (empty == 4) { qout[out_index] = m; return; }
-    m.plane.w = MARKED;
-    if (valid < 4) { qout[out_index] = m; return; }
+    if (empty == 4) { plane_out[out_index] = vec4(0.0, 0.0, 0.0, EMPTY); return; }
+    if (valid < 4) { plane_out[out_index] = vec4(0.0, 0.0, 0.0, MARKED); return; }
 
     // Plane equations (n, d) of the children, their centre depths.
     vec4 eq[4];
     float z[4];
     for (int c = 0; c < 4; ++c) {
         vec2 centre = (vec2(2 * p + ivec2(c & 1, c >> 1)) + 0.5) * child_size;
-        eq[c] = vec4(child[c].plane.xyz, plane_d(child[c].plane.xyz, centre, child[c].plane.w));
-        z[c] = normalized_depth(child[c].plane.w);
+        eq[c] = vec4(plane[c].xyz, plane_d(plane[c].xyz, centre, plane[c].w));
+        z[c] = normalized_depth(plane[c].w);
     }
     float fs = fovea_scale((vec2(p) + 0.5) * child_size * 2.0);
     float delta_sim = u_delta_sim * fs;
@@ -60,11 +60,11 @@ void main() {
         similar = similar && distance(eq[a], eq[b]) < delta_sim;
         continuous = continuous && abs(z[a] - z[b]) < u_delta_max;
     }
-    if (!(similar || (coarse && continuous))) { qout[out_index] = m; return; }
+    if (!(similar || (coarse && continuous))) { plane_out[out_index] = vec4(0.0, 0.0, 0.0, MARKED); return; }
 
     vec4 avg = (eq[0] + eq[1] + eq[2] + eq[3]) * 0.25;
     float len_n = length(avg.xyz);
-    if (len_n < 1e-3) { qout[out_index] = m; return; }
+    if (len_n < 1e-3) { plane_out[out_index] = vec4(0.0, 0.0, 0.0, MARKED); return; }
     vec3 n = avg.xyz / len_n;
     float d = avg.w / len_n;
     float size = child_size * 2.0;
@@ -74,17 +74,19 @@ void main() {
     n = limit_grazing(n, -rc, u_max_angle);
     float t_centre = ray_plane_t(rc, n, d);
     d = dot(n, rc * t_centre);
-    // Sub-quad c of the merged quad is child c; its corner k is child c's outer corner k.
+    // Sub-quad c of the merged quad is child c; its corner k is child c's outer corner k (the child's offset
+    // off[k][k]: sub-quad k, corner k).
     for (int c = 0; c < 4; ++c) {
         vec2 child_origin = origin + child_size * vec2(c & 1, c >> 1);
+        vec4 o;
         for (int k = 0; k < 4; ++k) {
             vec2 q = child_origin + child_size * vec2(k & 1, k >> 1);
             vec3 r = normalize(ray_dir(q));
-            float t_surface = ray_plane_t(r, eq[c].xyz, eq[c].w) + child[c].off[k][k];
-            m.off[c][k] = t_surface - ray_plane_t(r, n, d);
+            float t_surface = ray_plane_t(r, eq[c].xyz, eq[c].w) + off_in[16 * child_index[c] + 5 * k];
+            o[k] = t_surface - ray_plane_t(r, n, d);
         }
+        off_out[4 * out_index + c] = o;
     }
-    m.plane = vec4(n, depth_along(centre, t_centre));
-    for (int c = 0; c < 4; ++c) qin[child_index[c]].plane = vec4(0.0, 0.0, 0.0, EMPTY);
-    qout[out_index] = m;
+    plane_out[out_index] = vec4(n, depth_along(centre, t_centre));
+    for (int c = 0; c < 4; ++c) plane_in[child_index[c]] = vec4(0.0, 0.0, 0.0, EMPTY);
 }

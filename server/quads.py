@@ -22,7 +22,9 @@ from quadcast.render.gl import compute, read_buffer, set_uniforms
 from quadcast.render.quadmesh import QUAD_FLOATS
 
 HERE = Path(__file__).resolve().parent
-ENTRY_BYTES = 20 * 4
+TILE = 8                 # the quad passes' workgroups are TILE x TILE entries of a map (quad_tiles.glsl)
+MAX_GROUPS_X = 1024      # workgroups per row of a dispatch over a tile list
+PLANE_BYTES, OFFSET_BYTES = 4 * 4, 16 * 4   # a Quad Map entry's plane and its 16 offsets (quad_entry.glsl)
 
 
 @dataclass(frozen=True)
@@ -91,8 +93,11 @@ class QuadGenerator:
         self.ctx, self.width, self.height = ctx, width, height
         self.levels = quad_map_levels(width, height)
         self.sizes = [(-(-width // (1 << l)), -(-height // (1 << l))) for l in range(self.levels)]
-        self.maps = [ctx.buffer(reserve=w * h * ENTRY_BYTES) for w, h in self.sizes]
+        self.planes = [ctx.buffer(reserve=w * h * PLANE_BYTES) for w, h in self.sizes]
+        self.offsets = [ctx.buffer(reserve=w * h * OFFSET_BYTES) for w, h in self.sizes]
         self.capacity = width * height
+        self.tile_grids = [(-(-w // TILE), -(-h // TILE)) for w, h in self.sizes]
+        self.tiles = ctx.buffer(reserve=4 * sum(tw * th for tw, th in self.tile_grids))
         self.counter = ctx.buffer(reserve=4)
         self.gathered = ctx.buffer(reserve=self.capacity * QUAD_FLOATS * 4)
         self.create = compute(ctx, HERE / "quad_create.comp")
@@ -110,6 +115,51 @@ class QuadGenerator:
         self._mask.write(np.ascontiguousarray(mask[::-1], np.uint8).tobytes())
         return self._mask
 
+    def active_tiles(self, camera: Camera, mask: np.ndarray | None = None,
+                     inner: Camera | None = None) -> list[np.ndarray]:
+        """Per Quad Map level, the (ty << 16) | tx codes of the TILE x TILE tiles the passes must run on: those
+        holding a pixel of `mask` and, with `inner`, not wholly inside that camera's frustum (the create pass
+        writes nothing but empty entries there); at level l, the tiles above those of level 0."""
+        tw, th = self.tile_grids[0]
+        active = np.ones((th, tw), bool)
+        if mask is not None:
+            padded = np.zeros((th * TILE, tw * TILE), bool)
+            padded[:self.height, :self.width] = mask
+            active &= padded.reshape(th, TILE, tw, TILE).any(axis=(1, 3))
+        if inner is not None:
+            active &= ~self._inside_tiles(camera, inner)
+        ty, tx = np.nonzero(active)
+        levels = []
+        for level in range(self.levels):
+            codes = np.unique((ty >> level).astype(np.uint32) << 16 | (tx >> level).astype(np.uint32))
+            levels.append(codes)
+        return levels
+
+    def _inside_tiles(self, camera: Camera, inner: Camera) -> np.ndarray:
+        """(th, tw) bools: tiles whose every pixel centre is a pixel or more inside `inner`'s frustum (as the
+        create pass tests it, 2% in from its edges), so no pixel of theirs gets a quad."""
+        f, fi = camera.frustum, inner.frustum
+        tw, th = self.tile_grids[0]
+        px = (f.right - f.left) / f.near / self.width         # x/z (and y/z) of one pixel
+        py = (f.top - f.bottom) / f.near / self.height
+        lo_x, hi_x = 0.98 * fi.left / fi.near + px, 0.98 * fi.right / fi.near - px
+        lo_y, hi_y = 0.98 * fi.bottom / fi.near + py, 0.98 * fi.top / fi.near - py
+        x0 = np.arange(tw) * TILE + 0.5                       # first and last pixel centres of each tile
+        x1 = np.minimum(x0 + TILE - 1, self.width - 0.5)
+        y0 = np.arange(th) * TILE + 0.5
+        y1 = np.minimum(y0 + TILE - 1, self.height - 0.5)
+        rx0, rx1 = f.left / f.near + px * x0, f.left / f.near + px * x1
+        ry0, ry1 = f.top / f.near - py * y0, f.top / f.near - py * y1     # rows from the top: y/z decreases
+        in_x = (rx0 > lo_x) & (rx1 < hi_x)
+        in_y = (ry1 > lo_y) & (ry0 < hi_y)
+        return in_y[:, None] & in_x[None, :]
+
+    def _run_tiles(self, prog, base: int, count: int) -> None:
+        """Dispatch `prog` on `count` tiles of the list from entry `base`."""
+        gx = min(count, MAX_GROUPS_X)
+        set_uniforms(prog, u_tile_base=base, u_tile_count=count, u_tile_stride=gx)
+        prog.run(gx, -(-count // gx))
+
     def _camera_uniforms(self, prog, camera: Camera) -> None:
         f = camera.frustum
         set_uniforms(prog, u_frustum=(f.left, f.right, f.bottom, f.top), u_near=f.near, u_far=f.far,
@@ -126,6 +176,14 @@ class QuadGenerator:
         max_angle = math.radians(params.max_angle_deg)
 
         t0 = time.perf_counter()
+        tiles = self.active_tiles(camera, mask, inner)
+        bases = np.concatenate([[0], np.cumsum([len(t) for t in tiles])]).astype(int)
+        if len(tiles[0]):
+            self.tiles.write(np.concatenate(tiles).astype(np.uint32).tobytes())
+        if len(tiles[0]) < self.tile_grids[0][0] * self.tile_grids[0][1]:
+            for buf in self.planes:       # entries outside the tiles are empty: the passes do not visit them
+                buf.clear()
+        self.tiles.bind_to_storage_buffer(5)
         prog = self.create
         self._camera_uniforms(prog, camera)
         position.use(0)
@@ -140,8 +198,10 @@ class QuadGenerator:
                      u_delta_max=params.delta_max, u_max_angle=max_angle,
                      u_sky_distance=camera.frustum.far * 0.9 if params.sky else 0.0,
                      u_max_depth=params.max_depth if params.max_depth > 0 else 3.0e38)
-        self.maps[0].bind_to_storage_buffer(0)
-        prog.run((self.width + 7) // 8, (self.height + 7) // 8)
+        self.planes[0].bind_to_storage_buffer(0)
+        self.offsets[0].bind_to_storage_buffer(1)
+        if len(tiles[0]):
+            self._run_tiles(prog, bases[0], len(tiles[0]))
         ctx.memory_barrier()
         ctx.finish()
         t1 = time.perf_counter()
@@ -150,12 +210,15 @@ class QuadGenerator:
         self._camera_uniforms(prog, camera)
         for level in range(1, self.levels):
             (iw, ih), (ow, oh) = self.sizes[level - 1], self.sizes[level]
-            self.maps[level - 1].bind_to_storage_buffer(0)
-            self.maps[level].bind_to_storage_buffer(1)
+            self.planes[level - 1].bind_to_storage_buffer(0)
+            self.offsets[level - 1].bind_to_storage_buffer(1)
+            self.planes[level].bind_to_storage_buffer(2)
+            self.offsets[level].bind_to_storage_buffer(3)
             set_uniforms(prog, u_in_size=(iw, ih), u_out_size=(ow, oh), u_out_level=level,
                          u_coarse_passes=params.coarse_passes, u_delta_sim=params.delta_sim,
                          u_delta_max=params.delta_max, u_max_angle=max_angle, **params.fovea_uniforms())
-            prog.run((ow + 7) // 8, (oh + 7) // 8)
+            if len(tiles[level]):
+                self._run_tiles(prog, bases[level], len(tiles[level]))
             ctx.memory_barrier()
         ctx.finish()
         t2 = time.perf_counter()
@@ -167,10 +230,12 @@ class QuadGenerator:
         self.gathered.bind_to_storage_buffer(2)
         for level in range(self.levels):
             w, h = self.sizes[level]
-            self.maps[level].bind_to_storage_buffer(0)
+            self.planes[level].bind_to_storage_buffer(0)
+            self.offsets[level].bind_to_storage_buffer(3)
             set_uniforms(prog, u_map_size=(w, h), u_level=level, u_capacity=self.capacity,
                          u_delta_flatten=params.delta_flatten, **params.fovea_uniforms())
-            prog.run((w + 7) // 8, (h + 7) // 8)
+            if len(tiles[level]):
+                self._run_tiles(prog, bases[level], len(tiles[level]))
             ctx.memory_barrier()
         count = min(int(np.frombuffer(self.counter.read(), np.uint32)[0]), self.capacity)
         rows = np.frombuffer(read_buffer(self.gathered, count * QUAD_FLOATS * 4), np.float32).reshape(count,

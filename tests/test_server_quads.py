@@ -1,5 +1,6 @@
 """The server quad pipeline (QUASAR §3.2–3.5): fitting, merging, residual frames, the encode command."""
 import json
+from dataclasses import replace
 
 import av
 import numpy as np
@@ -44,6 +45,54 @@ def test_quads_reconstruct_the_view_they_came_from(ctx, courtyard_renderer):
     geometry = np.isfinite(truth)
     close = np.abs(got[geometry] - truth[geometry]) <= 0.02 * truth[geometry]
     assert close.mean() > 0.97
+
+
+def _same_quads(a, b) -> bool:
+    return (len(a) == len(b) and all(np.array_equal(getattr(a, f), getattr(b, f))
+                                     for f in ("x", "y", "size_log2", "flattened", "normal", "depth", "offsets")))
+
+
+def test_tile_lists_give_the_quads_of_the_whole_grid(ctx, courtyard_renderer, monkeypatch):
+    """The quad passes visit only 8x8 tiles holding a masked pixel, or (wide view) not wholly inside the main
+    view: the quads are those a pass over every tile gives, and no Quad Map entry left from an earlier frame
+    leaks into a masked one."""
+    from quadcast.server import quads as quads_module
+    from quadcast.server.layers import wide_camera
+    cam = Camera.perspective(Pose.look_at([0, 1.6, 6], [0, 1.5, 0]), 192, 108)
+    gb = courtyard_renderer.gbuffer(cam, 0.0)
+    rng = np.random.default_rng(3)
+    mask = np.zeros((108, 192), bool)
+    mask[rng.integers(0, 108, 40), rng.integers(0, 192, 40)] = True
+    mask[30:70, 50:120] = True
+    params = QuadParams()
+
+    used = QuadGenerator(ctx, 192, 108)
+    # A frame at other settings first (fewer merges): it leaves valid quads in every Quad Map, which these
+    # settings would merge if the masked pass read them.
+    used.generate(gb.position, gb.normal, cam, replace(params, delta_sim=1e-4, coarse_passes=0))
+    masked, _ = used.generate(gb.position, gb.normal, cam, params, mask=mask)
+    tiles = used.active_tiles(cam, mask)[0]
+    assert 0 < len(tiles) < 24 * 14                               # the mask's tiles, not the whole grid
+    wide = wide_camera(cam)
+    wide_gb = courtyard_renderer.gbuffer(wide, 0.0)
+    wide_gen = QuadGenerator(ctx, wide.width, wide.height)
+    outer, _ = wide_gen.generate(wide_gb.position, wide_gb.normal, wide, params.relaxed(), inner=cam)
+    inside = wide_gen._inside_tiles(wide, cam)
+    assert 0 < inside.sum() < inside.size
+
+    # The same passes over every tile of a fresh generator.
+    def every_tile(self, camera, mask=None, inner=None):
+        tw, th = self.tile_grids[0]
+        ty, tx = np.mgrid[:th, :tw].reshape(2, -1)
+        return [np.unique((ty >> l).astype(np.uint32) << 16 | (tx >> l).astype(np.uint32))
+                for l in range(self.levels)]
+    monkeypatch.setattr(quads_module.QuadGenerator, "active_tiles", every_tile)
+    masked_all, _ = QuadGenerator(ctx, 192, 108).generate(gb.position, gb.normal, cam, params, mask=mask)
+    outer_all, _ = QuadGenerator(ctx, wide.width, wide.height).generate(wide_gb.position, wide_gb.normal, wide,
+                                                                        params.relaxed(), inner=cam)
+    assert len(masked) > 0 and len(outer) > 0
+    assert _same_quads(masked, masked_all)
+    assert _same_quads(outer, outer_all)
 
 
 @pytest.fixture(scope="module")
