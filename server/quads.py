@@ -103,6 +103,8 @@ class QuadGenerator:
         self.create = compute(ctx, HERE / "quad_create.comp")
         self.merge = compute(ctx, HERE / "quad_merge.comp")
         self.gather = compute(ctx, HERE / "quad_gather.comp")
+        self.occupancy = compute(ctx, HERE / "quad_occupancy.comp")
+        self.occupied = ctx.buffer(reserve=4 * self.tile_grids[0][0] * self.tile_grids[0][1])
         self._empty_mask = ctx.texture((1, 1), 1, b"\x01", dtype="u1")
         self._mask = ctx.texture((width, height), 1, dtype="u1")
         self._mask.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -115,13 +117,26 @@ class QuadGenerator:
         self._mask.write(np.ascontiguousarray(mask[::-1], np.uint8).tobytes())
         return self._mask
 
-    def active_tiles(self, camera: Camera, mask: np.ndarray | None = None,
-                     inner: Camera | None = None) -> list[np.ndarray]:
-        """Per Quad Map level, the (ty << 16) | tx codes of the TILE x TILE tiles the passes must run on: those
-        holding a pixel of `mask` and, with `inner`, not wholly inside that camera's frustum (the create pass
-        writes nothing but empty entries there); at level l, the tiles above those of level 0."""
+    def occupied_tiles(self, position: moderngl.Texture, max_depth: float = 0.0) -> np.ndarray:
+        """(th, tw) bools: the tiles of the G-buffer texture `position` holding geometry (nearer than
+        `max_depth` when > 0). Reads back one word per tile."""
         tw, th = self.tile_grids[0]
-        active = np.ones((th, tw), bool)
+        position.use(0)
+        set_uniforms(self.occupancy, u_position=0, u_size=(self.width, self.height), u_tiles=(tw, th),
+                     u_max_depth=max_depth if max_depth > 0 else 3.0e38)
+        self.occupied.bind_to_storage_buffer(0)
+        self.occupancy.run(-(-tw // 8), -(-th // 8))
+        self.ctx.memory_barrier()
+        return np.frombuffer(self.occupied.read(size=4 * tw * th), np.uint32).reshape(th, tw) != 0
+
+    def active_tiles(self, camera: Camera, mask: np.ndarray | None = None, inner: Camera | None = None,
+                     occupied: np.ndarray | None = None) -> list[np.ndarray]:
+        """Per Quad Map level, the (ty << 16) | tx codes of the TILE x TILE tiles the passes must run on: those
+        holding a pixel of `mask`, marked in `occupied` ((th, tw) bools) and, with `inner`, not wholly inside that
+        camera's frustum (the create pass writes nothing but empty entries there); at level l, the tiles above
+        those of level 0."""
+        tw, th = self.tile_grids[0]
+        active = np.ones((th, tw), bool) if occupied is None else occupied.copy()
         if mask is not None:
             padded = np.zeros((th * TILE, tw * TILE), bool)
             padded[:self.height, :self.width] = mask
@@ -176,7 +191,9 @@ class QuadGenerator:
         max_angle = math.radians(params.max_angle_deg)
 
         t0 = time.perf_counter()
-        tiles = self.active_tiles(camera, mask, inner)
+        # Without sky quads a pixel without geometry gets no quad: only tiles holding some need the passes.
+        occupied = None if params.sky else self.occupied_tiles(position, params.max_depth)
+        tiles = self.active_tiles(camera, mask, inner, occupied)
         bases = np.concatenate([[0], np.cumsum([len(t) for t in tiles])]).astype(int)
         if len(tiles[0]):
             self.tiles.write(np.concatenate(tiles).astype(np.uint32).tobytes())

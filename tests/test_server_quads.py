@@ -54,8 +54,8 @@ def _same_quads(a, b) -> bool:
 
 def test_tile_lists_give_the_quads_of_the_whole_grid(ctx, courtyard_renderer, monkeypatch):
     """The quad passes visit only 8x8 tiles holding a masked pixel, or (wide view) not wholly inside the main
-    view: the quads are those a pass over every tile gives, and no Quad Map entry left from an earlier frame
-    leaks into a masked one."""
+    view and holding geometry: the quads are those a pass over every tile gives, and no Quad Map entry left
+    from an earlier frame leaks into a masked one."""
     from quadcast.server import quads as quads_module
     from quadcast.server.layers import wide_camera
     cam = Camera.perspective(Pose.look_at([0, 1.6, 6], [0, 1.5, 0]), 192, 108)
@@ -79,9 +79,11 @@ def test_tile_lists_give_the_quads_of_the_whole_grid(ctx, courtyard_renderer, mo
     outer, _ = wide_gen.generate(wide_gb.position, wide_gb.normal, wide, params.relaxed(), inner=cam)
     inside = wide_gen._inside_tiles(wide, cam)
     assert 0 < inside.sum() < inside.size
+    occupied = wide_gen.occupied_tiles(wide_gb.position)
+    assert 0 < occupied.sum() < occupied.size                     # the sky holds no geometry
 
     # The same passes over every tile of a fresh generator.
-    def every_tile(self, camera, mask=None, inner=None):
+    def every_tile(self, camera, mask=None, inner=None, occupied=None):
         tw, th = self.tile_grids[0]
         ty, tx = np.mgrid[:th, :tw].reshape(2, -1)
         return [np.unique((ty >> l).astype(np.uint32) << 16 | (tx >> l).astype(np.uint32))
