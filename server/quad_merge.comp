@@ -2,7 +2,8 @@
 // Quad merging (QUASAR 3.2.2): 2x2 quads of Quad Map l become one quad of map l+1 when their planes are similar
 // (plane-equation distance < delta_sim), or, in the first coarse passes, when they have no depth discontinuity
 // (normalised centre depths within delta_max). Merged children are cleared; unmerged ones mark their parent so
-// no larger quad covers them. Offsets are recomputed against the averaged plane from the children's corners.
+// no larger quad covers them, and, as no later pass can merge them, are gathered here (quad_append.glsl).
+// Offsets are recomputed against the averaged plane from the children's corners.
 // Foveated (fovea.glsl): away from the gaze, delta_sim grows by the fovea scale and the coarse passes go on
 // log2(scale) levels further.
 layout(local_size_x = 8, local_size_y = 8) in;
@@ -10,6 +11,7 @@ layout(local_size_x = 8, local_size_y = 8) in;
 #include "quad_entry.glsl"
 #include "quad_tiles.glsl"
 #include "fovea.glsl"
+#include "quad_append.glsl"
 
 layout(std430, binding = 0) buffer PlanesIn { vec4 plane_in[]; };
 layout(std430, binding = 1) readonly buffer OffsetsIn { float off_in[]; };   // 16 per entry
@@ -23,27 +25,23 @@ uniform float u_delta_sim;
 uniform float u_delta_max;
 uniform float u_max_angle;
 
-void main() {
-    ivec2 p = tile_invocation();
-    if (p.x < 0 || any(greaterThanEqual(p, u_out_size))) return;
-    uint out_index = uint(p.y * u_out_size.x + p.x);
-
-    // Only the children's planes are read until the four of them are known to merge.
-    vec4 plane[4];
-    uint child_index[4];
-    int valid = 0, empty = 0;
-    float child_size = float(1 << (u_out_level - 1));
+// Gather the valid children of an output entry that does not merge them (children are at level u_out_level - 1).
+void append_children(ivec2 p, vec4 plane[4], uint child_index[4]) {
     for (int c = 0; c < 4; ++c) {
-        ivec2 q = 2 * p + ivec2(c & 1, c >> 1);
-        if (any(greaterThanEqual(q, u_in_size))) { empty++; plane[c] = vec4(0.0); continue; }
-        child_index[c] = uint(q.y * u_in_size.x + q.x);
-        plane[c] = plane_in[child_index[c]];
-        if (plane[c].w > 0.0) valid++;
-        else if (plane[c].w == EMPTY) empty++;
+        if (!(plane[c].w > 0.0)) continue;
+        uint b = 16u * child_index[c];
+        vec4 off[4];
+        for (int s = 0; s < 4; ++s)
+            off[s] = vec4(off_in[b + 4u * uint(s)], off_in[b + 4u * uint(s) + 1u], off_in[b + 4u * uint(s) + 2u],
+                          off_in[b + 4u * uint(s) + 3u]);
+        append_quad(2 * p + ivec2(c & 1, c >> 1), u_out_level - 1, plane[c], off);
     }
-    if (empty == 4) { plane_out[out_index] = vec4(0.0, 0.0, 0.0, EMPTY); return; }
-    if (valid < 4) { plane_out[out_index] = vec4(0.0, 0.0, 0.0, MARKED); return; }
+}
 
+// Merge four valid children into output entry out_index if their planes are similar enough (see the top);
+// false, writing nothing, if not.
+bool merge_children(ivec2 p, vec4 plane[4], uint child_index[4], uint out_index) {
+    float child_size = float(1 << (u_out_level - 1));
     // Plane equations (n, d) of the children, their centre depths.
     vec4 eq[4];
     float z[4];
@@ -60,11 +58,11 @@ void main() {
         similar = similar && distance(eq[a], eq[b]) < delta_sim;
         continuous = continuous && abs(z[a] - z[b]) < u_delta_max;
     }
-    if (!(similar || (coarse && continuous))) { plane_out[out_index] = vec4(0.0, 0.0, 0.0, MARKED); return; }
+    if (!(similar || (coarse && continuous))) return false;
 
     vec4 avg = (eq[0] + eq[1] + eq[2] + eq[3]) * 0.25;
     float len_n = length(avg.xyz);
-    if (len_n < 1e-3) { plane_out[out_index] = vec4(0.0, 0.0, 0.0, MARKED); return; }
+    if (len_n < 1e-3) return false;
     vec3 n = avg.xyz / len_n;
     float d = avg.w / len_n;
     float size = child_size * 2.0;
@@ -89,4 +87,29 @@ void main() {
     }
     plane_out[out_index] = vec4(n, depth_along(centre, t_centre));
     for (int c = 0; c < 4; ++c) plane_in[child_index[c]] = vec4(0.0, 0.0, 0.0, EMPTY);
+    return true;
 }
+
+void main() {
+    ivec2 p = tile_invocation();
+    if (p.x < 0 || any(greaterThanEqual(p, u_out_size))) return;
+    uint out_index = uint(p.y * u_out_size.x + p.x);
+
+    // Only the children's planes are read until the four of them are known to merge.
+    vec4 plane[4];
+    uint child_index[4];
+    int valid = 0, empty = 0;
+    for (int c = 0; c < 4; ++c) {
+        ivec2 q = 2 * p + ivec2(c & 1, c >> 1);
+        if (any(greaterThanEqual(q, u_in_size))) { empty++; plane[c] = vec4(0.0); continue; }
+        child_index[c] = uint(q.y * u_in_size.x + q.x);
+        plane[c] = plane_in[child_index[c]];
+        if (plane[c].w > 0.0) valid++;
+        else if (plane[c].w == EMPTY) empty++;
+    }
+    if (empty == 4) { plane_out[out_index] = vec4(0.0, 0.0, 0.0, EMPTY); return; }
+    if (valid == 4 && merge_children(p, plane, child_index, out_index)) return;
+    plane_out[out_index] = vec4(0.0, 0.0, 0.0, MARKED);
+    append_children(p, plane, child_index);
+}
+

@@ -223,6 +223,12 @@ class QuadGenerator:
         ctx.finish()
         t1 = time.perf_counter()
 
+        # The merge passes append the quads they leave unmerged (quad_append.glsl); the gather pass, those of
+        # the last Quad Map.
+        self.counter.write(np.zeros(1, np.uint32).tobytes())
+        self.counter.bind_to_storage_buffer(4)
+        self.gathered.bind_to_storage_buffer(6)
+        gather = dict(u_capacity=self.capacity, u_delta_flatten=params.delta_flatten, **params.fovea_uniforms())
         prog = self.merge
         self._camera_uniforms(prog, camera)
         for level in range(1, self.levels):
@@ -233,27 +239,21 @@ class QuadGenerator:
             self.offsets[level].bind_to_storage_buffer(3)
             set_uniforms(prog, u_in_size=(iw, ih), u_out_size=(ow, oh), u_out_level=level,
                          u_coarse_passes=params.coarse_passes, u_delta_sim=params.delta_sim,
-                         u_delta_max=params.delta_max, u_max_angle=max_angle, **params.fovea_uniforms())
+                         u_delta_max=params.delta_max, u_max_angle=max_angle, **gather)
             if len(tiles[level]):
                 self._run_tiles(prog, bases[level], len(tiles[level]))
             ctx.memory_barrier()
         ctx.finish()
         t2 = time.perf_counter()
 
-        prog = self.gather
+        prog, top = self.gather, self.levels - 1
         self._camera_uniforms(prog, camera)
-        self.counter.write(np.zeros(1, np.uint32).tobytes())
-        self.counter.bind_to_storage_buffer(1)
-        self.gathered.bind_to_storage_buffer(2)
-        for level in range(self.levels):
-            w, h = self.sizes[level]
-            self.planes[level].bind_to_storage_buffer(0)
-            self.offsets[level].bind_to_storage_buffer(3)
-            set_uniforms(prog, u_map_size=(w, h), u_level=level, u_capacity=self.capacity,
-                         u_delta_flatten=params.delta_flatten, **params.fovea_uniforms())
-            if len(tiles[level]):
-                self._run_tiles(prog, bases[level], len(tiles[level]))
-            ctx.memory_barrier()
+        self.planes[top].bind_to_storage_buffer(0)
+        self.offsets[top].bind_to_storage_buffer(3)
+        set_uniforms(prog, u_map_size=self.sizes[top], u_level=top, **gather)
+        if len(tiles[top]):
+            self._run_tiles(prog, bases[top], len(tiles[top]))
+        ctx.memory_barrier()
         count = min(int(np.frombuffer(self.counter.read(), np.uint32)[0]), self.capacity)
         rows = np.frombuffer(read_buffer(self.gathered, count * QUAD_FLOATS * 4), np.float32).reshape(count,
                                                                                                        QUAD_FLOATS)
