@@ -58,6 +58,7 @@ class GBuffer:
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.geometry_fbo = ctx.framebuffer([self.albedo, self.normal, self.position, self.object_id], self.depth)
         self.color_fbo = ctx.framebuffer([self.color])
+        self.color_depth_fbo = ctx.framebuffer([self.color], self.depth)    # lighting where geometry is
         self.camera: Camera | None = None
 
     def clear(self) -> None:
@@ -96,7 +97,7 @@ class GBuffer:
         return RenderedFrame(self.read_color(), self.read_depth(), self.read_normal(), self.read_object_id())
 
     def release(self) -> None:
-        for obj in (self.geometry_fbo, self.color_fbo, self.albedo, self.normal, self.position, self.object_id,
+        for obj in (self.geometry_fbo, self.color_fbo, self.color_depth_fbo, self.albedo, self.normal, self.position, self.object_id,
                     self.depth, self.color):
             obj.release()
 
@@ -278,15 +279,26 @@ class DeferredRenderer:
         gb.camera = camera
         return gb
 
-    def lighting_pass(self, gb: GBuffer, t: float, region: tuple[int, int, int, int] | None = None) -> None:
-        """Shade the G-buffer into its colour (only within `region`, as in `geometry_pass`, when given)."""
+    def lighting_pass(self, gb: GBuffer, t: float, region: tuple[int, int, int, int] | None = None,
+                      geometry_only: bool = False) -> None:
+        """Shade the G-buffer into its colour (only within `region`, as in `geometry_pass`, when given). With
+        `geometry_only`, only pixels with geometry are shaded and the rest is black: the depth test against the
+        G-buffer's depth skips them, where a branch in the shader would not save their cost on llvmpipe."""
         camera = gb.camera
         self.render_shadows(t)
         scene, view = self.scene, camera.view_matrix()
         prog = self.lighting_prog
-        gb.color_fbo.use()
-        gb.color_fbo.scissor = None if region is None else _gl_rect(region, gb.height)
-        self.ctx.disable(moderngl.DEPTH_TEST)
+        fbo = gb.color_depth_fbo if geometry_only else gb.color_fbo
+        if geometry_only:      # the colour only: the depth is the test's
+            gb.color_fbo.clear(0.0, 0.0, 0.0, 1.0, viewport=None if region is None else _gl_rect(region, gb.height))
+        fbo.use()
+        fbo.scissor = None if region is None else _gl_rect(region, gb.height)
+        if geometry_only:
+            self.ctx.enable(moderngl.DEPTH_TEST)
+            self.ctx.depth_func = ">"            # the far plane (u_z = 1) lies behind every pixel with geometry
+            fbo.depth_mask = False
+        else:
+            self.ctx.disable(moderngl.DEPTH_TEST)
         gb.albedo.use(0)
         gb.normal.use(1)
         gb.position.use(2)
@@ -307,15 +319,20 @@ class DeferredRenderer:
                      u_ambient=tuple(float(c) for c in scene.ambient), u_sky=tuple(float(c) for c in scene.sky),
                      u_shadow_texel=1.0 / self.shadow_size, u_num_lights=n,
                      u_light_pos=light_pos.tobytes(), u_light_color=light_col.tobytes(),
-                     u_light_radius=light_rad.tobytes())
+                     u_light_radius=light_rad.tobytes(), u_z=1.0 if geometry_only else 0.0)
         self.fullscreen.render(moderngl.TRIANGLES, vertices=3)
-        gb.color_fbo.scissor = None
+        fbo.scissor = None
+        if geometry_only:
+            fbo.depth_mask = True
+            self.ctx.depth_func = "<"
+            self.ctx.disable(moderngl.DEPTH_TEST)
 
     def gbuffer(self, camera: Camera, t: float = 0.0, target: GBuffer | None = None,
-                region: tuple[int, int, int, int] | None = None) -> GBuffer:
-        """Geometry and lighting passes (only within `region`, see `geometry_pass`); the results stay on the GPU."""
+                region: tuple[int, int, int, int] | None = None, geometry_only: bool = False) -> GBuffer:
+        """Geometry and lighting passes (only within `region`, see `geometry_pass`; `geometry_only`, see
+        `lighting_pass`); the results stay on the GPU."""
         gb = self.geometry_pass(camera, t, target, region=region)
-        self.lighting_pass(gb, t, region)
+        self.lighting_pass(gb, t, region, geometry_only)
         return gb
 
     def render(self, camera: Camera, t: float = 0.0) -> RenderedFrame:

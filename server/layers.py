@@ -80,7 +80,7 @@ class LayerRenderer:
                          u_viewcell_radius=float(viewcell_radius), u_connectivity=float(connectivity),
                          u_max_radius_px=max_radius_px)
             r.geometry_pass(small, t, target=gb, prog=self.peel)
-            r.lighting_pass(gb, t)
+            r.lighting_pass(gb, t, geometry_only=True)    # the atlas needs no sky colour in hidden layers
             layers.append(gb)
             prev = gb
         return layers

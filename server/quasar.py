@@ -197,7 +197,8 @@ class QuasarServer(MethodServer):
         t0 = time.perf_counter()
         gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity)
         wide_cam = wide_camera(camera, s.wide_fovy_deg, s.wide_scale)
-        wide_gb = self.renderer.gbuffer(wide_cam, t, target=self.wide_gbuffer)
+        # Lit only where geometry is: the wide view gets no sky quads (the far field shows the sky).
+        wide_gb = self.renderer.gbuffer(wide_cam, t, target=self.wide_gbuffer, geometry_only=not s.hidden.sky)
         # The reference view is rendered again where the scene moved since it was last rendered (the animated
         # objects and their shadows, §3.5.2: to find what changed, and for its current colour); elsewhere, and in a
         # static scene everywhere, what the reference frame rendered is still exact.

@@ -96,6 +96,20 @@ def test_courtyard_frames_are_lit_textured_shadowed_and_deterministic(courtyard_
     assert (np.abs(c0.color.astype(int) - c1.color.astype(int)).max(-1) > 30).mean() > 0.003
 
 
+def test_lighting_geometry_only_shades_geometry_and_leaves_sky_black(courtyard_renderer):
+    """`geometry_only` lighting (the server's hidden layers and wide view) gives the full pass's colour where there
+    is geometry and black where there is none, also in a G-buffer that held a lit view before."""
+    cam = Camera.perspective(Pose.look_at([0, 1.6, 6], [0, 3.0, 0]), 160, 90)
+    full = courtyard_renderer.render(cam, 1.0)
+    sky = np.isinf(full.depth)
+    assert 0.05 < sky.mean() < 0.95
+    gb = courtyard_renderer.gbuffer(cam, 1.0, geometry_only=True)
+    got = gb.read_color()
+    assert np.array_equal(got[~sky], full.color[~sky])
+    assert not got[sky].any()
+    assert np.isinf(gb.read_depth()).mean() == sky.mean()
+
+
 def _world_points(cam, depth):
     h, w = depth.shape
     ys, xs = np.mgrid[0:h, 0:w] + 0.5
