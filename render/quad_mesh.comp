@@ -2,6 +2,8 @@
 // Mesh reconstruction of one layer: a quad with depth offsets becomes 4 sub-quads = 16 vertices (view space of
 // its layer camera, atlas uv) and 24 indices; a flattened quad (a plane, no offsets) one quad = 4 vertices and 6
 // indices. One invocation per quad; where each quad's vertices go (its indices: 3/2 of that) is decided on the CPU.
+// Built twice, with FLATTENED 1 and 0: each dispatch takes one kind of quad (render/quadmesh.py puts the flattened
+// ones first), as llvmpipe would run both branches of an if for every quad of a mixed batch.
 layout(local_size_x = 64) in;
 #include "quad.glsl"
 
@@ -14,6 +16,7 @@ layout(std430, binding = 0) readonly buffer Quads { Quad quads[]; };
 layout(std430, binding = 1) writeonly buffer Vertices { float vertices[]; };  // 5 floats each: xyz, uv
 layout(std430, binding = 2) writeonly buffer Indices { uint indices[]; };
 
+uniform uint u_first;         // this dispatch's quads: u_first .. u_count - 1
 uniform uint u_count;
 uniform vec4 u_atlas_rect;    // x, y, w, h of this layer's colour in the atlas (pixels, top-left origin)
 uniform vec2 u_atlas_size;
@@ -30,7 +33,7 @@ void quad_indices(uint k, uint b) {   // two triangles of the (sub-)quad whose c
 }
 
 void main() {
-    uint i = gl_GlobalInvocationID.x;
+    uint i = u_first + gl_GlobalInvocationID.x;
     if (i >= u_count) return;
     Quad q = quads[i];
     float size = float(1u << q.head.z);
@@ -38,14 +41,13 @@ void main() {
     vec3 n = q.normal_depth.xyz;
     float d = plane_d(n, origin + 0.5 * size, q.normal_depth.w);
     uint v0 = q.head.w & 0x7fffffffu;
-    if ((q.head.w >> 31) != 0u) {        // flattened: the whole quad, one plane
-        for (uint c = 0u; c < 4u; ++c) {
-            vec2 p = quad_corner_point(origin, 2.0 * size, 0, int(c));
-            emit(v0 + c, p, quad_corner_position(p, n, d, 0.0));
-        }
-        quad_indices(v0 / 2u * 3u, v0);
-        return;
+#if FLATTENED
+    for (uint c = 0u; c < 4u; ++c) {     // the whole quad, one plane
+        vec2 p = quad_corner_point(origin, 2.0 * size, 0, int(c));
+        emit(v0 + c, p, quad_corner_position(p, n, d, 0.0));
     }
+    quad_indices(v0 / 2u * 3u, v0);
+#else
     for (uint s = 0u; s < 4u; ++s) {
         for (uint c = 0u; c < 4u; ++c) {
             vec2 p = quad_corner_point(origin, size, int(s), int(c));
@@ -53,4 +55,5 @@ void main() {
         }
         quad_indices(v0 / 2u * 3u + 6u * s, v0 + 4u * s);
     }
+#endif
 }

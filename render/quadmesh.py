@@ -84,7 +84,7 @@ class QuadMesh:
 
     def __init__(self, ctx: moderngl.Context):
         self.ctx = ctx
-        self.builder = compute(ctx, HERE / "quad_mesh.comp")
+        self.builders = {flat: compute(ctx, HERE / "quad_mesh.comp", FLATTENED=int(flat)) for flat in (True, False)}
         self.prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh.frag.glsl")
         self._buffers: list[_LayerBuffers] = []
         self.layers: list[tuple[MeshLayer, _LayerBuffers]] = []
@@ -115,16 +115,22 @@ class QuadMesh:
         if not n:
             return
         buf.reserve(self.ctx, self.prog, n, vertices)
-        buf.quad_buf.write(rows.tobytes())
+        flat = (rows[:, 3].view(np.uint32) >> np.uint32(31)) != 0
+        n_flat = int(flat.sum())
+        # Flattened quads first, each kind its own dispatch (their vertex places stay in head.w: same mesh).
+        buf.quad_buf.write(rows[flat].tobytes() + rows[~flat].tobytes())
         buf.quad_buf.bind_to_storage_buffer(0)
         buf.vertex_buf.bind_to_storage_buffer(1)
         buf.index_buf.bind_to_storage_buffer(2)
         f = layer.camera.frustum
-        set_uniforms(self.builder, u_frustum=(f.left, f.right, f.bottom, f.top), u_near=f.near, u_far=f.far,
-                     u_size=(layer.camera.width, layer.camera.height), u_count=n,
-                     u_atlas_rect=tuple(float(v) for v in layer.atlas_rect),
-                     u_atlas_size=(float(atlas_size[0]), float(atlas_size[1])))
-        self.builder.run((n + 63) // 64)
+        for is_flat, first, count in ((True, 0, n_flat), (False, n_flat, n)):
+            if count > first:
+                builder = self.builders[is_flat]
+                set_uniforms(builder, u_frustum=(f.left, f.right, f.bottom, f.top), u_near=f.near, u_far=f.far,
+                             u_size=(layer.camera.width, layer.camera.height), u_first=first, u_count=count,
+                             u_atlas_rect=tuple(float(v) for v in layer.atlas_rect),
+                             u_atlas_size=(float(atlas_size[0]), float(atlas_size[1])))
+                builder.run((count - first + 63) // 64)
 
     def draw(self, camera: Camera, atlas: moderngl.Texture) -> None:
         """Render the mesh from `camera` into the bound framebuffer (depth test on)."""
