@@ -47,7 +47,8 @@ class GBuffer:
     """GPU-resident render targets of one view: albedo, view normal, view position, object id, depth, lit colour."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int):
-        self.width, self.height = width, height
+        self.ctx, self.width, self.height = ctx, width, height
+        self._linear_depth: tuple | None = None      # (texture, framebuffer, vertex array) made on first use
         self.albedo = ctx.texture((width, height), 4, dtype="f2")
         self.normal = ctx.texture((width, height), 4, dtype="f2")
         self.position = ctx.texture((width, height), 4, dtype="f4")
@@ -69,7 +70,20 @@ class GBuffer:
 
     def read_depth(self, region: tuple[int, int, int, int] | None = None) -> np.ndarray:
         """Linear view depth in metres (inf where nothing was hit); of `region` (x, y, w, h from the top-left)
-        only, when given."""
+        only, when given. The whole view is converted on the GPU (render/linear_depth.frag.glsl) and read as one
+        float per pixel."""
+        if region is None:
+            if self._linear_depth is None:
+                tex = self.ctx.texture((self.width, self.height), 1, dtype="f4")
+                prog = program(self.ctx, HERE / "fullscreen.vert.glsl", HERE / "linear_depth.frag.glsl")
+                self._linear_depth = (tex, self.ctx.framebuffer([tex]), self.ctx.vertex_array(prog, []), prog)
+            tex, fbo, vao, prog = self._linear_depth
+            fbo.use()
+            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)
+            self.position.use(0)
+            set_uniforms(prog, u_position=0, u_z=0.0)
+            vao.render(moderngl.TRIANGLES, vertices=3)
+            return read_texture(tex, 1, "f4")
         pos = self._read(2, 4, "f4", region)
         return np.where(pos[..., 3] > 0, -pos[..., 2], np.inf).astype(np.float32)
 
@@ -97,6 +111,10 @@ class GBuffer:
         return RenderedFrame(self.read_color(), self.read_depth(), self.read_normal(), self.read_object_id())
 
     def release(self) -> None:
+        if self._linear_depth is not None:
+            for obj in self._linear_depth[:3]:
+                obj.release()
+            self._linear_depth = None
         for obj in (self.geometry_fbo, self.color_fbo, self.color_depth_fbo, self.albedo, self.normal, self.position, self.object_id,
                     self.depth, self.color):
             obj.release()

@@ -10,7 +10,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.ndimage import binary_dilation
 
 from quadcast.protocol.frame import FramePayload, FrameType, Method
 from quadcast.protocol.quads import LayerKind, QuadFrame, QuadLayer, encode_quad_frame
@@ -19,7 +18,7 @@ from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 from quadcast.render.renderer import DeferredRenderer, GBuffer
 from quadcast.server.layers import AtlasComposer, AtlasLayout, wide_camera
 from quadcast.server.method import MethodServer
-from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings, quad_stats
+from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings, grow_mask, quad_stats
 from quadcast.codec.encoder import AtlasEncoder, VideoSettings
 
 
@@ -97,7 +96,7 @@ class QuadStreamServer(MethodServer):
                 with np.errstate(invalid="ignore"):
                     new = ~(np.abs(covered_depth - depth) <= s.covered_tolerance * depth)
                 new &= np.isfinite(depth)
-                mask = binary_dilation(new, iterations=1)
+                mask = grow_mask(new)
             params = s.params if i == 0 else QuadParams(**{**s.params.__dict__, "sky": False})
             quads, tm = self.generator.generate(gb.position, gb.normal, cam, params, mask)
             timings.add(tm)

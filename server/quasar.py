@@ -6,7 +6,6 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.ndimage import binary_dilation
 
 from quadcast.protocol.frame import FramePayload, FrameType, Method
 from quadcast.protocol.methods import DEFAULT_CRF
@@ -18,7 +17,7 @@ from quadcast.render.renderer import DeferredRenderer, GBuffer
 from quadcast.server.farfield import FarField
 from quadcast.server.layers import AtlasComposer, AtlasLayout, LayerRenderer, wide_camera
 from quadcast.server.method import MethodServer
-from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings, quad_stats
+from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings, grow_mask, quad_stats
 from quadcast.codec.encoder import AtlasEncoder, VideoSettings
 from quadcast.protocol.rate import OperatingPoint
 
@@ -262,7 +261,7 @@ class QuasarServer(MethodServer):
             depth = gbs[0].read_depth()
             with np.errstate(invalid="ignore"):
                 revealed = np.isinf(mesh_depth) | (depth < mesh_depth * (1 - s.change_threshold))
-            revealed = binary_dilation(revealed, iterations=1)
+            revealed = grow_mask(revealed)
             if self.far_field is not None and s.far_split_m > 0:
                 revealed &= ~(depth > s.far_split_m)       # far geometry (and revealed sky) is the far field's
             rev = quads(gbs[0], camera, self.visible_params, mask=revealed) if revealed.any() else QuadSet.empty()

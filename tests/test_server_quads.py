@@ -47,6 +47,17 @@ def test_quads_reconstruct_the_view_they_came_from(ctx, courtyard_renderer):
     assert close.mean() > 0.97
 
 
+def test_grow_mask_is_a_one_pixel_binary_dilation():
+    from scipy.ndimage import binary_dilation
+    from quadcast.server.quads import grow_mask
+    rng = np.random.default_rng(5)
+    for shape, p in (((37, 53), 0.05), ((1, 9), 0.3), ((8, 1), 0.3), ((20, 20), 0.0), ((6, 7), 1.0)):
+        mask = rng.random(shape) < p
+        before = mask.copy()
+        assert np.array_equal(grow_mask(mask), binary_dilation(mask, iterations=1))
+        assert np.array_equal(mask, before)                          # the input is left as it was
+
+
 def _same_quads(a, b) -> bool:
     return (len(a) == len(b) and all(np.array_equal(getattr(a, f), getattr(b, f))
                                      for f in ("x", "y", "size_log2", "flattened", "normal", "depth", "offsets")))
