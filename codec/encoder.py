@@ -190,11 +190,13 @@ class AtlasEncoder:
         """Encode one atlas image into exactly one H.264 access unit.
 
         Args:
-            rgb: uint8 array of shape (height, width, 3), RGB, top row first.
+            rgb: uint8 array of shape (height, width, 3), RGB, top row first; or (height, width, 4), RGBA
+                (alpha ignored), as a GPU texture reads back -- converted to the same 4:2:0 planes, without
+                the copy that dropping the alpha channel would take.
             keyframe: force this frame to be an IDR picture.
 
         Raises:
-            ValueError: ``rgb`` is not a uint8 (height, width, 3) array.
+            ValueError: ``rgb`` is not a uint8 (height, width, 3 or 4) array.
             RuntimeError: the encoder is closed, or libx264 did not return
                 exactly one access unit (a broken low-latency configuration).
         """
@@ -206,14 +208,14 @@ class AtlasEncoder:
                 f"atlas image must be a numpy uint8 array of shape {expected}; "
                 f"got {type(rgb).__name__}"
             )
-        if rgb.shape != expected or rgb.dtype != np.uint8:
+        if rgb.shape not in (expected, expected[:2] + (4,)) or rgb.dtype != np.uint8:
             raise ValueError(
-                f"atlas image must be uint8 with shape {expected} (height, width, RGB); "
-                f"got shape {rgb.shape} dtype {rgb.dtype}"
+                f"atlas image must be uint8 with shape {expected} (height, width, RGB) or "
+                f"{expected[:2] + (4,)} (RGBA); got shape {rgb.shape} dtype {rgb.dtype}"
             )
 
         start = time.perf_counter()
-        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
+        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24" if rgb.shape[2] == 3 else "rgba")
         frame = frame.reformat(format="yuv420p", dst_colorspace="ITU601", dst_color_range="MPEG")
         frame.pts = self._frame_index
         frame.pict_type = PictureType.I if keyframe else PictureType.NONE

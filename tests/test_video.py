@@ -231,15 +231,26 @@ def test_starting_on_non_idr_waits_for_keyframe(clip_crf18):
     assert decoder.decode(encoded[6].data) is not None
 
 
+def test_rgba_input_encodes_to_the_same_bytes_as_rgb():
+    """The server hands the encoder its RGBA read-back as it is (no copy to drop alpha): same stream."""
+    rgb = [textured_frame(i) for i in range(3)]
+    alpha = np.random.default_rng(1).integers(0, 256, (HEIGHT, WIDTH, 1), dtype=np.uint8)
+    with AtlasEncoder(WIDTH, HEIGHT, VideoSettings(threads=1)) as a, \
+            AtlasEncoder(WIDTH, HEIGHT, VideoSettings(threads=1)) as b:
+        for i, frame in enumerate(rgb):
+            assert a.encode(frame, keyframe=i == 0).data == \
+                b.encode(np.concatenate([frame, alpha], axis=2), keyframe=i == 0).data
+
+
 @pytest.mark.parametrize(
     "bad",
     [
-        np.zeros((HEIGHT, WIDTH, 4), np.uint8),
+        np.zeros((HEIGHT, WIDTH, 2), np.uint8),
         np.zeros((WIDTH, HEIGHT, 3), np.uint8),
         np.zeros((HEIGHT, WIDTH), np.uint8),
         np.zeros((HEIGHT, WIDTH, 3), np.float32),
     ],
-    ids=["rgba", "transposed", "gray", "float"],
+    ids=["two-channel", "transposed", "gray", "float"],
 )
 def test_bad_input_image_raises_value_error(bad):
     with AtlasEncoder(WIDTH, HEIGHT, VideoSettings(threads=1)) as encoder:
