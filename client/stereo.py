@@ -120,12 +120,15 @@ class StereoSynthesizer:
         self.ipd = float(ipd)
         self.dominant = dominant
         self.intermediate_width = max(1, int(round(self.width * intermediate_scale)))
-        self.settings = dict(u_linear=bool(linear), u_kernel_rows=int(kernel_rows), u_kernel_max=int(kernel_max),
+        self.settings = dict(u_kernel_rows=int(kernel_rows), u_kernel_max=int(kernel_max),
                              u_continuity=float(continuity), u_edge_radius=float(edge_radius),
                              u_edge_disparity=float(edge_disparity), u_max_stretch=float(max_stretch))
         self.reproject_cs = compute(ctx, HERE / "yoro_reproject.comp")
         self.scan_cs = compute(ctx, HERE / "yoro_scan.comp")
-        self.patch_cs = compute(ctx, HERE / "yoro_patch.comp")
+        fixed = dict(LINEAR=int(bool(linear)), COARSE=int(self.intermediate_width < self.width))
+        self.patch_cs = compute(ctx, HERE / "yoro_patch.comp", HOLES=0, **fixed)   # covered pixels; lists holes
+        self.hole_cs = compute(ctx, HERE / "yoro_patch.comp", HOLES=1, **fixed)    # the listed holes
+        self.hole_groups_cs = compute(ctx, HERE / "yoro_hole_groups.comp")
         self.composite_cs = compute(ctx, HERE / "stereo_composite.comp")
         self.mask_prog = program(ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "stereo_mask.frag.glsl")
         self.fullscreen = ctx.vertex_array(self.mask_prog, [])
@@ -135,6 +138,8 @@ class StereoSynthesizer:
         self.color = ctx.texture((w, h), 4, dtype="f1")
         self.mask = ctx.texture((w, h), 2, dtype="f1")
         self.merged = ctx.texture((w, h), 4, dtype="f1")        # mode 2 composite
+        self.holes = ctx.buffer(reserve=4 * (1 + w * h))        # the Patcher's hole list: count, then pixels
+        self.hole_groups = ctx.buffer(reserve=12)               # its indirect dispatch
         self._cull_fbos: dict[int, moderngl.Framebuffer] = {}   # per depth texture drawn into (mode 2)
         for tex in (self.targets, self.imbuffer, self.color, self.mask, self.merged):
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -208,12 +213,20 @@ class StereoSynthesizer:
         color.use(0)
         depth.use(1)
         settings = self.settings if edge_mask else {**self.settings, "u_edge_radius": 0.0}
-        set_uniforms(self.patch_cs, u_color=0, u_depth=1, u_depth_is_position=is_position,
-                     u_disparity_scale=focal_px * self.ipd, **settings)
+        for cs in (self.patch_cs, self.hole_cs):
+            set_uniforms(cs, u_color=0, u_depth=1, u_depth_is_position=is_position,
+                         u_disparity_scale=focal_px * self.ipd, **settings)
         self.imbuffer.bind_to_image(0, read=True, write=False)
         self.color.bind_to_image(1, read=False, write=True)
         self.mask.bind_to_image(2, read=False, write=True)
+        self.holes.write(b"\0\0\0\0")
+        self.holes.bind_to_storage_buffer(3)
+        self.hole_groups.bind_to_storage_buffer(4)
         self.patch_cs.run((self.width + 7) // 8, (self.height + 7) // 8)
+        self.ctx.memory_barrier()
+        self.hole_groups_cs.run(1)
+        self.ctx.memory_barrier()
+        self.hole_cs.run_indirect(self.hole_groups)
         self.ctx.memory_barrier()
         self._last = StereoResult(self.color, self.mask, self.other_eye(camera))
         return self._last
@@ -278,8 +291,8 @@ class StereoSynthesizer:
         return StereoResult(self.merged, result.mask, result.camera)
 
     def release(self) -> None:
-        for obj in (self.fullscreen, self.targets, self.imbuffer, self.color, self.mask, self.merged,
-                    *self._cull_fbos.values()):
+        for obj in (self.fullscreen, self.targets, self.imbuffer, self.color, self.mask, self.merged, self.holes,
+                    self.hole_groups, *self._cull_fbos.values()):
             obj.release()
         self._cull_fbos.clear()
 
