@@ -323,8 +323,8 @@ class QuadSet:
 
     @classmethod
     def _decoded(cls, **columns: np.ndarray) -> QuadSet:
-        """A QuadSet over columns the blob decoder made and checked itself (no copies: decoding a frame costs
-        its output, not twice that)."""
+        """A QuadSet over columns already checked: made by the blob decoder (no copies: decoding a frame costs
+        its output, not twice that), or taken from valid QuadSets (`concatenate`, `select`)."""
         obj = object.__new__(cls)
         for name, value in columns.items():
             object.__setattr__(obj, name, value)
@@ -353,7 +353,7 @@ class QuadSet:
                 raise TypeError(f"QuadSet.concatenate: item {i} is {type(s).__name__}, expected QuadSet")
         if not sets:
             return cls.empty()
-        return cls(
+        return cls._decoded(
             x=np.concatenate([s.x for s in sets]),
             y=np.concatenate([s.y for s in sets]),
             size_log2=np.concatenate([s.size_log2 for s in sets]),
@@ -383,7 +383,7 @@ class QuadSet:
         else:
             raise ValueError(f"QuadSet.select: expected a boolean mask or integer indices, got dtype {sel.dtype}")
         rows = self.offset_index[idx]
-        return QuadSet(
+        return QuadSet._decoded(
             x=self.x[idx],
             y=self.y[idx],
             size_log2=self.size_log2[idx],

@@ -30,15 +30,46 @@ class QuadCache:
                                                       "depth", "offsets")) + self.index_map.nbytes)
 
     def _rasterize(self, quads: QuadSet, first_index: int) -> None:
-        sizes = 1 << quads.size_log2.astype(np.int64)
+        """Let each quad own the pixels it covers, in the order a loop would write them -- the 1-pixel quads by
+        index, then the larger ones by index: where quads overlap (a malformed layer), the last one written wins.
+        Vectorized per size class; the write order is kept by taking, per pixel, the writer of highest rank."""
+        n = len(quads)
+        if n == 0:
+            return
+        levels = quads.size_log2
         xs, ys = quads.x.astype(np.int64), quads.y.astype(np.int64)
-        ones = sizes == 1
-        ok = ones & (xs < self.width) & (ys < self.height)
-        idx = np.arange(len(quads), dtype=np.int64) + first_index
-        self.index_map[ys[ok], xs[ok]] = idx[ok]
-        for i in np.flatnonzero(~ones):
-            s = sizes[i]
-            self.index_map[ys[i]:ys[i] + s, xs[i]:xs[i] + s] = idx[i]
+        order = np.concatenate([np.flatnonzero(levels == 0), np.flatnonzero(levels != 0)])
+        rank = np.empty(n, np.int64)
+        rank[order] = np.arange(n)
+        pixels, ranks = [], []
+        for level in np.unique(levels):
+            s = 1 << int(level)
+            sel = np.flatnonzero(levels == level)
+            if s >= 32:                     # few, large quads: each one's rectangle, clipped to the map
+                for i in sel:
+                    rows = np.arange(ys[i], min(ys[i] + s, self.height))
+                    cols = np.arange(xs[i], min(xs[i] + s, self.width))
+                    pixels.append((rows[:, None] * self.width + cols).ravel())
+                    ranks.append(np.full(pixels[-1].size, rank[i]))
+                continue
+            oy, ox = np.divmod(np.arange(s * s), s)
+            py, px = ys[sel, None] + oy, xs[sel, None] + ox
+            ok = (py < self.height) & (px < self.width)
+            pixels.append((py * self.width + px)[ok])
+            ranks.append(np.broadcast_to(rank[sel, None], py.shape)[ok])
+        pixels, ranks = np.concatenate(pixels), np.concatenate(ranks)
+        flat = self.index_map.reshape(-1)
+        if pixels.size < flat.size // 8:    # a residual frame's few quads: sort, the last write per pixel
+            o = np.lexsort((ranks, pixels))
+            last = o[np.r_[pixels[o][1:] != pixels[o][:-1], True]]
+            flat[pixels[last]] = order[ranks[last]] + first_index
+        elif np.bincount(pixels, minlength=flat.size).max() <= 1:      # disjoint quads (a valid layer)
+            flat[pixels] = order[ranks] + first_index
+        else:
+            winner = np.full(flat.size, -1, np.int64)
+            np.maximum.at(winner, pixels, ranks)
+            written = np.flatnonzero(winner >= 0)
+            flat[written] = order[winner[written]] + first_index
 
     def reset(self, quads: QuadSet) -> None:
         """A reference frame: its visible-layer quads replace everything."""
@@ -54,13 +85,14 @@ class QuadCache:
         n_old = len(self.quads)
         self._rasterize(quads, n_old)
         combined = QuadSet.concatenate([self.quads, quads])
-        owned = np.bincount(self.index_map[self.index_map >= 0], minlength=len(combined)) > 0
+        # pixels per quad, -1 (no quad) counted in bin 0
+        owned = np.bincount((self.index_map + 1).ravel(), minlength=len(combined) + 1)[1:] > 0
         freed = int((~owned).sum())
         if freed:
-            remap = np.cumsum(owned) - 1
+            # new index of every old one, -1 for a freed quad; a lookup table indexed by old index + 1
+            remap = np.concatenate([[-1], np.where(owned, np.cumsum(owned) - 1, -1)]).astype(np.int32)
             combined = combined.select(owned)
-            valid = self.index_map >= 0
-            self.index_map[valid] = remap[self.index_map[valid]]
+            np.take(remap, self.index_map + 1, out=self.index_map)
         self.quads = combined
         self.freed_total += freed
         return freed

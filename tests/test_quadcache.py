@@ -1,0 +1,63 @@
+import numpy as np
+import pytest
+
+from quadcast.protocol.quads import OFFSETS_PER_QUAD, QuadSet
+from quadcast.render.quadcache import QuadCache
+
+
+def random_quads(rng, n, width, height, max_size_log2):
+    flat = rng.random(n) < 0.5
+    normal = rng.normal(size=(n, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    return QuadSet(x=rng.integers(0, width, n), y=rng.integers(0, height, n),
+                   size_log2=rng.integers(0, max_size_log2 + 1, n), flattened=flat, alpha=np.zeros(n, bool),
+                   normal=normal, depth=rng.uniform(0.5, 50.0, n),
+                   offsets=rng.normal(scale=0.1, size=(int((~flat).sum()), OFFSETS_PER_QUAD)))
+
+
+def loop_rasterize(index_map, quads, first_index):
+    """The cache's rule written as the plain loop: 1-pixel quads by index, then the larger ones by index."""
+    h, w = index_map.shape
+    order = [i for i in range(len(quads)) if quads.size_log2[i] == 0] + \
+            [i for i in range(len(quads)) if quads.size_log2[i] != 0]
+    for i in order:
+        s, x, y = 1 << int(quads.size_log2[i]), int(quads.x[i]), int(quads.y[i])
+        index_map[y:min(y + s, h), x:min(x + s, w)] = first_index + i
+
+
+@pytest.mark.parametrize("n, max_size_log2", [(3000, 0), (400, 3), (60, 6), (8, 10)])
+def test_cache_index_map_follows_the_write_order_also_where_quads_overlap(n, max_size_log2):
+    """Every path of the vectorized rasterizer (sorted few pixels, disjoint, overlapping) gives the loop's map."""
+    rng = np.random.default_rng(n)
+    w, h = 96, 54
+    cache, reference = QuadCache(w, h), np.full((h, w), -1, np.int32)
+    first = random_quads(rng, n, w, h, max_size_log2)
+    cache.reset(first)
+    loop_rasterize(reference, first, 0)
+    np.testing.assert_array_equal(cache.index_map, reference)
+    for k in (5, 40):
+        update = random_quads(rng, k, w, h, min(max_size_log2, 3))
+        n_old = len(cache)
+        loop_rasterize(reference, update, n_old)
+        freed = cache.update(update)
+        owned = np.bincount(reference[reference >= 0], minlength=n_old + k) > 0
+        assert freed == int((~owned).sum())
+        remap = np.cumsum(owned) - 1
+        expected = np.where(reference >= 0, remap[np.maximum(reference, 0)], -1)
+        np.testing.assert_array_equal(cache.index_map, expected)
+        assert len(cache) == int(owned.sum())
+        reference = expected.astype(np.int32)
+
+
+def test_cache_of_disjoint_quads_covers_each_pixel_once():
+    """A layer's quads tile the image: after a reset every pixel belongs to the quad that covers it."""
+    w, h = 64, 32
+    xs, ys = np.meshgrid(np.arange(0, w, 4), np.arange(0, h, 4))
+    n = xs.size
+    quads = QuadSet(x=xs.ravel(), y=ys.ravel(), size_log2=np.full(n, 2), flattened=np.ones(n, bool),
+                    alpha=np.zeros(n, bool), normal=np.tile([0.0, 0.0, 1.0], (n, 1)), depth=np.ones(n),
+                    offsets=np.zeros((0, OFFSETS_PER_QUAD)))
+    cache = QuadCache(w, h)
+    cache.reset(quads)
+    expected = (np.arange(h)[:, None] // 4) * (w // 4) + np.arange(w)[None, :] // 4
+    np.testing.assert_array_equal(cache.index_map, expected)
