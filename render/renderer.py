@@ -186,6 +186,8 @@ class DeferredRenderer:
         self.shadow_fbo = ctx.framebuffer(depth_attachment=self.shadow_map)
         self._shadow_time: float | None = None
         self._animated_casters = any(o.cast_shadow and o.animation is not None for o in scene.objects)
+        self._animated_boxes = any(o.animation is not None for o in scene.objects)
+        self._world_boxes: np.ndarray | None = None     # (n, 8, 4) world-space box corners (static scenes: once)
         self._gbuffers: dict[tuple[int, int], GBuffer] = {}
 
     # ----------------------------------------------------------------------------------------- passes
@@ -256,11 +258,28 @@ class DeferredRenderer:
             self._gbuffers[key] = GBuffer(self.ctx, *key)
         return self._gbuffers[key]
 
+    def visible_objects(self, camera: Camera, t: float) -> np.ndarray:
+        """(n_objects,) bools: the objects whose bounding box is not wholly outside one plane of the camera's
+        frustum at time t. The others cannot draw a fragment: skipping them leaves the image as it is."""
+        if self._world_boxes is None or self._animated_boxes:
+            boxes = np.stack([np.c_[gm.box_corners, np.ones(8)] @ obj.model_matrix(t).T
+                              for obj, gm in zip(self.scene.objects, self.meshes)])    # (n, 8, 4)
+            self._world_boxes = boxes
+        clip = self._world_boxes @ (camera.projection_matrix() @ camera.view_matrix()).T  # (n, 8, 4)
+        x, y, z, w = np.moveaxis(clip, -1, 0)
+        outside = ((x < -w).all(1) | (x > w).all(1) | (y < -w).all(1) | (y > w).all(1)
+                   | (z < -w).all(1) | (z > w).all(1))
+        return ~outside
+
     def draw_geometry(self, camera: Camera, t: float, prog: moderngl.Program | None = None) -> None:
-        """Draw every object with `prog` (the G-buffer program unless given) into the bound framebuffer."""
+        """Draw every object with `prog` (the G-buffer program unless given) into the bound framebuffer; objects
+        wholly outside the camera's frustum are skipped (`visible_objects`)."""
         prog = prog or self.geometry_prog
         set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
-        for obj, gm in zip(self.scene.objects, self.meshes):
+        visible = self.visible_objects(camera, t)
+        for obj, gm, shown in zip(self.scene.objects, self.meshes, visible):
+            if not shown:
+                continue
             mat = gm.material
             gm.texture.use(0)
             set_uniforms(prog, u_model=gl_matrix(obj.model_matrix(t)), u_texture=0,

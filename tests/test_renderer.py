@@ -110,6 +110,19 @@ def test_lighting_geometry_only_shades_geometry_and_leaves_sky_black(courtyard_r
     assert np.isinf(gb.read_depth()).mean() == sky.mean()
 
 
+def test_objects_outside_the_frustum_are_skipped_without_changing_the_image(courtyard_renderer, monkeypatch):
+    """draw_geometry skips objects whose box is wholly outside the view: the frame is the same as drawing all."""
+    cam = Camera.perspective(Pose.look_at([0, 1.6, 6], [0, 1.5, 0]), 160, 90)
+    shown = courtyard_renderer.visible_objects(cam, 1.0)
+    assert 0 < shown.sum() < len(shown)
+    culled = courtyard_renderer.render(cam, 1.0)
+    monkeypatch.setattr(courtyard_renderer, "visible_objects", lambda camera, t: np.ones(len(shown), bool))
+    full = courtyard_renderer.render(cam, 1.0)
+    assert np.array_equal(culled.color, full.color) and np.array_equal(culled.object_id, full.object_id)
+    assert set(np.unique(full.object_id)) - {0} <= {o.object_id for o, s in
+                                                     zip(courtyard_renderer.scene.objects, shown) if s}
+
+
 def _world_points(cam, depth):
     h, w = depth.shape
     ys, xs = np.mgrid[0:h, 0:w] + 0.5
