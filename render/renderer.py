@@ -204,6 +204,13 @@ class DeferredRenderer:
                           [0, 0, -2 / (far - near), -(far + near) / (far - near)], [0, 0, 0, 1]])
         return ortho @ view
 
+    def forget_shadow_map(self) -> None:
+        """Where shadow casters move, make the next pass draw the shadow map again, as a renderer that has not
+        drawn this frame yet would (the benchmarks' full render of a frame the server has just rendered for the
+        same time). A static scene's shadow map is drawn once and kept."""
+        if self._animated_casters:
+            self._shadow_time = None
+
     def render_shadows(self, t: float) -> None:
         """The sun's shadow map at time t (skipped when it is already current)."""
         # The shadow map depends on t only through animated shadow casters: a static scene renders it once.
