@@ -33,8 +33,9 @@ class LayerRenderer:
 
     The hidden layers are rendered -- peeled, lit and later turned into quads -- at `hidden_size`, the size their
     colour has in the video atlas (QUASAR sends them at reduced resolution), not at the visible layer's: peeling is
-    the server's most expensive pass, and its cost goes with the pixel count. They peel from a copy of the visible
-    layer's geometry at that size."""
+    the server's most expensive pass, and its cost goes with the pixel count. They peel from the visible layer's
+    view positions reduced to that size (the nearest sample of each block, server/downsample.frag.glsl), not from a
+    second render of it: on llvmpipe a geometry pass costs its triangles at any size."""
 
     def __init__(self, renderer: DeferredRenderer, width: int, height: int, layers: int = 4,
                  hidden_size: tuple[int, int] | None = None):
@@ -44,7 +45,13 @@ class LayerRenderer:
         self.size = (width, height)
         self.hidden_size = hw, hh = hidden_size or (width, height)
         self.visible = GBuffer(self.ctx, width, height)
-        self.visible_small = GBuffer(self.ctx, hw, hh) if layers > 1 and (hw, hh) != (width, height) else None
+        self.visible_small = None          # the visible layer's positions at the hidden size, for peeling
+        if layers > 1 and (hw, hh) != (width, height):
+            self.visible_small = self.ctx.texture((hw, hh), 4, dtype="f4")
+            self.visible_small.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            self._small_fbo = self.ctx.framebuffer([self.visible_small])
+            self._downsample = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "downsample.frag.glsl")
+            self._downsample_vao = self.ctx.vertex_array(self._downsample, [])
         self.hidden = [GBuffer(self.ctx, hw, hh) for _ in range(layers - 1)]
         self.peel = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl")
 
@@ -67,22 +74,28 @@ class LayerRenderer:
         if not self.hidden:
             return layers
         small = self.hidden_camera(camera)
-        prev = layers[0]
+        visible_position = layers[0].position
         if self.visible_small is not None:
-            prev = r.geometry_pass(small, t, target=self.visible_small)
-        visible = prev
+            # Taken from the visible layer, not rendered again (a geometry pass costs its triangles at any size).
+            self._small_fbo.use()
+            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)
+            layers[0].position.use(0)
+            set_uniforms(self._downsample, u_position=0, u_z=0.0, u_small_size=self.hidden_size)
+            self._downsample_vao.render(moderngl.TRIANGLES, vertices=3)
+            visible_position = self.visible_small
+        prev_position = visible_position
         focal_px = small.focal_px[1]  # fy (fx for square pixels)
         max_radius_px = max(1, int(round(focal_px * np.tan(np.radians(max_radius_deg)))))
         for gb in self.hidden:
-            prev.position.use(4)
-            visible.position.use(5)
+            prev_position.use(4)
+            visible_position.use(5)
             set_uniforms(self.peel, u_prev_position=4, u_visible_position=5, u_focal_px=focal_px,
                          u_viewcell_radius=float(viewcell_radius), u_connectivity=float(connectivity),
                          u_max_radius_px=max_radius_px)
             r.geometry_pass(small, t, target=gb, prog=self.peel)
             r.lighting_pass(gb, t, geometry_only=True)    # the atlas needs no sky colour in hidden layers
             layers.append(gb)
-            prev = gb
+            prev_position = gb.position
         return layers
 
 

@@ -47,6 +47,24 @@ def test_quads_reconstruct_the_view_they_came_from(ctx, courtyard_renderer):
     assert close.mean() > 0.97
 
 
+def test_peeling_starts_from_the_nearest_visible_sample_of_each_block(ctx, courtyard_renderer):
+    """The hidden layers peel behind the visible layer's positions reduced to their size: per block of the
+    full-size layer, the nearest sample (not a second render at the small size)."""
+    from quadcast.render.renderer import read_texture
+    from quadcast.server.layers import LayerRenderer
+    cam = Camera.perspective(Pose.look_at([0, 1.6, 6], [0, 2.5, 0]), 64, 36)
+    layers = LayerRenderer(courtyard_renderer, 64, 36, 2, (32, 18))
+    visible, hidden = layers.render(cam, 0.0, 0.5)
+    full = read_texture(visible.position, 4, "f4")                 # top row first
+    small = read_texture(layers.visible_small, 4, "f4")
+    depth = np.where(full[..., 3] > 0, -full[..., 2], np.inf).reshape(18, 2, 32, 2).transpose(0, 2, 1, 3)
+    nearest = depth.reshape(18, 32, 4).min(axis=2)
+    got = np.where(small[..., 3] > 0, -small[..., 2], np.inf)
+    assert np.isinf(nearest).any() and np.isfinite(nearest).any()    # sky and geometry in view
+    np.testing.assert_array_equal(got, nearest)
+    assert np.isfinite(hidden.read_depth()).any()                   # something was peeled
+
+
 def test_grow_mask_is_a_one_pixel_binary_dilation():
     from scipy.ndimage import binary_dilation
     from quadcast.server.quads import grow_mask
