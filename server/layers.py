@@ -54,6 +54,27 @@ class LayerRenderer:
             self._downsample_vao = self.ctx.vertex_array(self._downsample, [])
         self.hidden = [GBuffer(self.ctx, hw, hh) for _ in range(layers - 1)]
         self.peel = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl")
+        self._peel_cull = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "peel_cull.frag.glsl")
+        self._peel_cull_vao = self.ctx.vertex_array(self._peel_cull, [])
+        self._peel_cull_fbos: dict[int, moderngl.Framebuffer] = {}
+
+    def _depth_step(self, depth: moderngl.Texture, position: moderngl.Texture, restore: bool) -> None:
+        """server/peel_cull.frag.glsl on `depth`: cull (depth 0 where `position` is empty) or restore (depth 1
+        there again)."""
+        fbo = self._peel_cull_fbos.get(depth.glo)
+        if fbo is None:
+            fbo = self._peel_cull_fbos[depth.glo] = self.ctx.framebuffer(depth_attachment=depth)
+        fbo.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.depth_func = "1"          # always: every pixel drawn takes the step's depth
+        position.use(0)
+        set_uniforms(self._peel_cull, u_position=0, u_restore=restore, u_z=0.0)
+        self._peel_cull_vao.render(moderngl.TRIANGLES, vertices=3)
+        self.ctx.depth_func = "<"
+
+    def _cull_where_empty(self, prev_position: moderngl.Texture):
+        """A cull step (render.renderer.CullFn) for a peel pass: depth 0 where `prev_position` holds nothing."""
+        return lambda depth: self._depth_step(depth, prev_position, restore=False)
 
     def use_hidden_layers(self, count: int) -> None:
         """Render only the first ``count`` hidden layers (of those allocated) from the next frame on."""
@@ -92,7 +113,10 @@ class LayerRenderer:
             set_uniforms(self.peel, u_prev_position=4, u_visible_position=5, u_focal_px=focal_px,
                          u_viewcell_radius=float(viewcell_radius), u_connectivity=float(connectivity),
                          u_max_radius_px=max_radius_px)
-            r.geometry_pass(small, t, target=gb, prog=self.peel)
+            cull = self._cull_where_empty(prev_position)
+            r.geometry_pass(small, t, target=gb, prog=self.peel, cull=cull)
+            if cull is not None:
+                self._depth_step(gb.depth, gb.position, restore=True)
             r.lighting_pass(gb, t, geometry_only=True)    # the atlas needs no sky colour in hidden layers
             layers.append(gb)
             prev_position = gb.position

@@ -65,6 +65,23 @@ def test_peeling_starts_from_the_nearest_visible_sample_of_each_block(ctx, court
     assert np.isfinite(hidden.read_depth()).any()                   # something was peeled
 
 
+def test_peel_passes_skip_pixels_where_the_previous_layer_is_empty_without_changing_them(ctx, courtyard_renderer,
+                                                                                       monkeypatch):
+    """Each peel pass first sets depth 0 where the previous layer holds nothing (the peel shader would discard
+    every fragment there): the layers are those of passes without that step."""
+    from quadcast.server.layers import LayerRenderer
+    cam = Camera.perspective(Pose.look_at([0, 1.6, 6], [0, 2.5, 0]), 96, 54)
+    def layers(renderer):
+        return [(gb.read_depth(), gb.read_color(), gb.read_depth_buffer()) for gb in renderer.render(cam, 0.0, 0.5)]
+    culled = layers(LayerRenderer(courtyard_renderer, 96, 54, 4, (48, 27)))
+    plain = LayerRenderer(courtyard_renderer, 96, 54, 4, (48, 27))
+    monkeypatch.setattr(plain, "_cull_where_empty", lambda prev: None)
+    full = layers(plain)
+    for a, b in zip(culled, full):                 # depth, lit colour (black where empty) and the depth buffer
+        assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert np.isinf(full[2][0]).mean() > 0.3 and np.isfinite(full[2][0]).any()   # a sparse layer: much is culled
+
+
 def test_grow_mask_is_a_one_pixel_binary_dilation():
     from scipy.ndimage import binary_dilation
     from quadcast.server.quads import grow_mask
