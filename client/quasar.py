@@ -42,7 +42,7 @@ class QuasarClient(MethodClient):
         self.frustum = Frustum.symmetric(fovy_deg, width / height)
         # budgets from the size this client asked for: quad layers of that size, an atlas of at most
         # MAX_ATLAS_VIEWS such pictures (anything declaring more is refused before it is decoded)
-        self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * width * height)
+        self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * width * height, rgba=True)   # as GL takes it
         self.mesh = QuadMesh(self.ctx)
         self.view = MeshView(self.ctx, width, height)
         self.max_quads = max_quads
@@ -115,9 +115,9 @@ class QuasarClient(MethodClient):
         if self.atlas is None or self.atlas.size != (w, h):
             if self.atlas is not None:
                 self.atlas.release()
-            self.atlas = self.ctx.texture((w, h), 3)
+            self.atlas = self.ctx.texture((w, h), 4)
             self.atlas.filter = (moderngl.LINEAR, moderngl.LINEAR)
-        self.atlas.write(np.ascontiguousarray(image).tobytes())
+        self.atlas.write(np.ascontiguousarray(image))
         self.mesh.build(mesh_layers, (w, h))
         self.ctx.finish()
         ms["mesh"] = (time.perf_counter() - t0) * 1e3

@@ -54,12 +54,15 @@ class AtlasDecoder:
     Call :meth:`decode` once per received access unit.
     """
 
-    def __init__(self, max_pixels: int | None = None) -> None:
+    def __init__(self, max_pixels: int | None = None, rgba: bool = False) -> None:
         """``max_pixels``: the largest picture accepted (width x height), e.g. what the session asked for; a
-        stream declaring a bigger one fails with VideoError before its picture is allocated."""
+        stream declaring a bigger one fails with VideoError before its picture is allocated. ``rgba``: pictures
+        come out as (height, width, 4) RGBA, alpha 255 -- the same RGB, in the layout a GL texture takes without
+        converting (Mesa converts 3-component uploads: 3.5 ms against 0.5 for a 1920x938 atlas)."""
         if max_pixels is not None and max_pixels < 1:
             raise ValueError(f"AtlasDecoder: max_pixels must be >= 1, got {max_pixels}")
         self.max_pixels = max_pixels
+        self.pixel_format = "rgba" if rgba else "rgb24"
         self._codec: av.VideoCodecContext | None = _new_codec(max_pixels)
         self._needs_keyframe = True
         self._last_sequence: int | None = None
@@ -83,7 +86,7 @@ class AtlasDecoder:
 
         Returns:
             The decoded atlas as a uint8 array (height, width, 3), RGB, top row
-            first; or None when the access unit yields no picture, including
+            first ((height, width, 4) RGBA with ``rgba``); or None when the access unit yields no picture, including
             non-IDR access units dropped while :attr:`needs_keyframe` is True.
 
         Raises:
@@ -138,7 +141,7 @@ class AtlasDecoder:
                 f"NAL types {nal_types}): picture is truncated or corrupt"
             )
         try:
-            rgb = frame.to_ndarray(format="rgb24")
+            rgb = frame.to_ndarray(format=self.pixel_format)
         except Exception as exc:
             raise self._fail(f"decoded picture could not be converted to RGB: {exc}") from exc
         if is_idr:

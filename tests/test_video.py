@@ -231,6 +231,17 @@ def test_starting_on_non_idr_waits_for_keyframe(clip_crf18):
     assert decoder.decode(encoded[6].data) is not None
 
 
+def test_rgba_decoding_gives_the_same_rgb_and_opaque_alpha():
+    """The client decodes to RGBA (what a GL texture takes as it is): the same RGB as the default decoder."""
+    with AtlasEncoder(WIDTH, HEIGHT, VideoSettings(threads=1)) as encoder:
+        units = [encoder.encode(textured_frame(i), keyframe=i == 0).data for i in range(3)]
+    rgb, rgba = AtlasDecoder(), AtlasDecoder(rgba=True)
+    for i, unit in enumerate(units):
+        a, b = rgb.decode(unit, i), rgba.decode(unit, i)
+        assert a.shape == (HEIGHT, WIDTH, 3) and b.shape == (HEIGHT, WIDTH, 4)
+        assert np.array_equal(a, b[..., :3]) and (b[..., 3] == 255).all()
+
+
 def test_rgba_input_encodes_to_the_same_bytes_as_rgb():
     """The server hands the encoder its RGBA read-back as it is (no copy to drop alpha): same stream."""
     rgb = [textured_frame(i) for i in range(3)]
