@@ -174,10 +174,12 @@ class MeshView:
         return read_texture(self.color, 4, "u1")[..., :3]
 
     def read_color_drawn(self) -> tuple[np.ndarray, np.ndarray]:
-        """The colour (H, W, 3) and where the mesh drew (H, W) bool, from one read-back: the target is cleared to
-        alpha 0 and every mesh fragment writes alpha 1."""
-        rgba = read_texture(self.color, 4, "u1")
-        return np.ascontiguousarray(rgba[..., :3]), rgba[..., 3] > 0
+        """The colour (H, W, 3) and where the mesh drew (H, W) bool: every mesh fragment writes a view depth > 0
+        where the target is cleared to 0. The colour is read as RGB (the driver drops alpha faster than numpy
+        copies three of four bytes: 0.9 ms against 3.2 at 960x540)."""
+        rgb = np.frombuffer(self.fbo.read(components=3, attachment=0), np.uint8)
+        rgb = rgb.reshape(self.height, self.width, 3)[::-1].copy()
+        return rgb, read_texture(self.view_depth, 1, "f4") > 0
 
     def read_depth(self) -> np.ndarray:
         """Linear view depth, top row first; inf where nothing was drawn."""
