@@ -33,7 +33,7 @@ class LayerRenderer:
 
     The hidden layers are rendered -- peeled, lit and later turned into quads -- at `hidden_size`, the size their
     colour has in the video atlas (QUASAR sends them at reduced resolution), not at the visible layer's: peeling is
-    the server's most expensive pass, and its cost goes with the pixel count. They peel from the visible layer's
+    the server's most expensive pass (three draws of the scene). They peel from the visible layer's
     view positions reduced to that size (the nearest sample of each block, server/downsample.frag.glsl), not from a
     second render of it: on llvmpipe a geometry pass costs its triangles at any size."""
 
