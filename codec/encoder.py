@@ -215,7 +215,8 @@ class AtlasEncoder:
             )
 
         start = time.perf_counter()
-        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24" if rgb.shape[2] == 3 else "rgba")
+        layout = "rgb24" if rgb.shape[2] == 3 else "rgba"
+        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format=layout)
         frame = frame.reformat(format="yuv420p", dst_colorspace="ITU601", dst_color_range="MPEG")
         frame.pts = self._frame_index
         frame.pict_type = PictureType.I if keyframe else PictureType.NONE

@@ -118,7 +118,7 @@ class QuadMesh:
         flat = (rows[:, 3].view(np.uint32) >> np.uint32(31)) != 0
         n_flat = int(flat.sum())
         # Flattened quads first, each kind its own dispatch (their vertex places stay in head.w: same mesh).
-        buf.quad_buf.write(rows[flat].tobytes() + rows[~flat].tobytes())
+        buf.quad_buf.write(np.concatenate([rows[flat], rows[~flat]]))
         buf.quad_buf.bind_to_storage_buffer(0)
         buf.vertex_buf.bind_to_storage_buffer(1)
         buf.index_buf.bind_to_storage_buffer(2)

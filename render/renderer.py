@@ -48,7 +48,7 @@ class GBuffer:
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int):
         self.ctx, self.width, self.height = ctx, width, height
-        self._linear_depth: tuple | None = None      # (texture, framebuffer, vertex array) made on first use
+        self._linear_depth: tuple | None = None      # (texture, framebuffer, vertex array, program), on first use
         self.albedo = ctx.texture((width, height), 4, dtype="f2")
         self.normal = ctx.texture((width, height), 4, dtype="f2")
         self.position = ctx.texture((width, height), 4, dtype="f4")
@@ -115,8 +115,8 @@ class GBuffer:
             for obj in self._linear_depth[:3]:
                 obj.release()
             self._linear_depth = None
-        for obj in (self.geometry_fbo, self.color_fbo, self.color_depth_fbo, self.albedo, self.normal, self.position, self.object_id,
-                    self.depth, self.color):
+        for obj in (self.geometry_fbo, self.color_fbo, self.color_depth_fbo, self.albedo, self.normal, self.position,
+                    self.object_id, self.depth, self.color):
             obj.release()
 
 

@@ -79,6 +79,9 @@ class FoveatedEncoder:
         self.encoder, self.foveation = encoder, foveation
 
     def encode(self, rgb: np.ndarray, *, keyframe: bool):
+        """As AtlasEncoder.encode: RGB, or RGBA whose alpha is dropped before foveating."""
+        if rgb.ndim == 3 and rgb.shape[2] == 4:
+            rgb = np.ascontiguousarray(rgb[..., :3])
         return self.encoder.encode(self.foveation.apply(rgb), keyframe=keyframe)
 
     def close(self) -> None:

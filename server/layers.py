@@ -113,10 +113,8 @@ class LayerRenderer:
             set_uniforms(self.peel, u_prev_position=4, u_visible_position=5, u_focal_px=focal_px,
                          u_viewcell_radius=float(viewcell_radius), u_connectivity=float(connectivity),
                          u_max_radius_px=max_radius_px)
-            cull = self._cull_where_empty(prev_position)
-            r.geometry_pass(small, t, target=gb, prog=self.peel, cull=cull)
-            if cull is not None:
-                self._depth_step(gb.depth, gb.position, restore=True)
+            r.geometry_pass(small, t, target=gb, prog=self.peel, cull=self._cull_where_empty(prev_position))
+            self._depth_step(gb.depth, gb.position, restore=True)
             r.lighting_pass(gb, t, geometry_only=True)    # the atlas needs no sky colour in hidden layers
             layers.append(gb)
             prev_position = gb.position
@@ -178,11 +176,7 @@ class AtlasComposer:
         color.filter = (moderngl.NEAREST, moderngl.NEAREST)
 
     def read(self) -> np.ndarray:
-        """The atlas as (H, W, 3) RGB, top row first."""
-        return np.ascontiguousarray(self.read_rgba()[..., :3])
-
-    def read_rgba(self) -> np.ndarray:
-        """The atlas as (H, W, 4) RGBA, top row first: what the encoder takes without the 12 ms (at 1920x938)
-        that copying out the RGB channels costs."""
+        """The atlas as (H, W, 4) RGBA, top row first: what the encoders take, without the 12 ms (at 1920x938)
+        that copying out the RGB channels would cost."""
         self.fbo.viewport = (0, 0, self.layout.width, self.layout.height)
         return read_texture(self.texture, 4, "u1")

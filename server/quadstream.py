@@ -123,7 +123,7 @@ class QuadStreamServer(MethodServer):
         for gb, rect in zip(self.gbuffers, self.rects):
             self.atlas.draw(gb.color, rect)
         self.atlas.draw(self.wide_gbuffer.color, self.rects[9])
-        video = self.encoder.encode(self.atlas.read_rgba(), keyframe=self._keyframe)
+        video = self.encoder.encode(self.atlas.read(), keyframe=self._keyframe)
         self._keyframe = False
         ms["video"] = (time.perf_counter() - t0) * 1e3
         payload = FramePayload(Method.QUADSTREAM, self.frame_id, FrameType.REFERENCE, self.frame_id, float(t),

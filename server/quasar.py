@@ -295,9 +295,7 @@ class QuasarServer(MethodServer):
         if self.far_field is not None:                    # in every frame's atlas: the client samples it there
             for color, rect in zip(self.far_field.colors, L.far):
                 self.atlas.draw(color, rect)
-        # The foveated encoder works on RGB; the encoder itself takes the RGBA read-back as it is.
-        atlas = self.atlas.read_rgba() if isinstance(self.encoder, AtlasEncoder) else self.atlas.read()
-        video = self.encoder.encode(atlas, keyframe=is_reference)
+        video = self.encoder.encode(self.atlas.read(), keyframe=is_reference)
         ms["video"] = (time.perf_counter() - t0) * 1e3
 
         stats = quad_stats(qframe, ms, cache_quads=len(self.cache))
