@@ -104,7 +104,7 @@ class QuasarClient(MethodClient):
             self.reference_id = payload.frame_id
         elif LayerKind.UPDATED in kinds:
             self.cache.update(frame.layers[kinds.index(LayerKind.UPDATED)].quads)
-        mesh_layers = [MeshLayer(self.cache.quads, self.reference_camera, self.reference_rect)]
+        mesh_layers = [MeshLayer(self.cache.quads, self.reference_camera, self.reference_rect, edit=self.cache.edit)]
         mesh_layers += [MeshLayer(l.quads, cam, l.atlas_rect, FILL_DEPTH_SCALE.get(l.kind, 1.0)) for l, cam in layers
                         if l.kind in (LayerKind.REVEALED, LayerKind.HIDDEN, LayerKind.WIDE)]
         mesh_layers += self.far_layers

@@ -8,15 +8,29 @@ Quads are axis-aligned pixel squares in this space, so rasterising them is array
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from quadcast.protocol.quads import QuadSet
+
+
+@dataclass(frozen=True)
+class QuadSetEdit:
+    """How one QuadSet came from another: `previous` with `appended` after it, then only the `kept` ones of the
+    two (a bool mask over len(previous) + len(appended); None keeps all). Lets a consumer (render.quadmesh) update
+    what it built from `previous` instead of starting again."""
+
+    previous: QuadSet
+    appended: QuadSet
+    kept: np.ndarray | None = None
 
 
 class QuadCache:
     def __init__(self, width: int, height: int):
         self.width, self.height = width, height
         self.quads = QuadSet.empty()
+        self.edit: QuadSetEdit | None = None   # how `quads` came from the ones before it; None after a reset
         self.index_map = np.full((height, width), -1, np.int32)
         self.freed_total = 0
 
@@ -74,6 +88,7 @@ class QuadCache:
     def reset(self, quads: QuadSet) -> None:
         """A reference frame: its visible-layer quads replace everything."""
         self.quads = quads
+        self.edit = None
         self.index_map.fill(-1)
         self._rasterize(quads, 0)
 
@@ -88,6 +103,7 @@ class QuadCache:
         # pixels per quad, -1 (no quad) counted in bin 0
         owned = np.bincount((self.index_map + 1).ravel(), minlength=len(combined) + 1)[1:] > 0
         freed = int((~owned).sum())
+        self.edit = QuadSetEdit(self.quads, quads, owned if freed else None)
         if freed:
             # new index of every old one, -1 for a freed quad; a lookup table indexed by old index + 1
             remap = np.concatenate([[-1], np.where(owned, np.cumsum(owned) - 1, -1)]).astype(np.int32)

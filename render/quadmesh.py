@@ -4,7 +4,10 @@ Shared by the client (which displays the mesh) and the server (which renders the
 what a residual frame must add). Each `MeshLayer` is one layer's `QuadSet` with the camera it was generated from
 and where its colour sits in the video atlas. A flattened quad (a plane) becomes one quad of the mesh, a quad with
 depth offsets four sub-quads. Each layer keeps its own buffers, so a layer whose quads did not change since the
-last build (a client's cache that a residual frame left as it was) is not rebuilt.
+last build (a client's cache that a residual frame left as it was) is not rebuilt, and a layer whose quads came
+from the last build's by a `QuadSetEdit` (the cache after a residual frame) is edited in place: the appended quads
+get new vertices at the end, the freed ones empty triangles, until the dead vertices outnumber the live ones.
+The triangles drawn, and their order, are those of a build from scratch.
 """
 from __future__ import annotations
 
@@ -17,6 +20,7 @@ import numpy as np
 from quadcast.protocol.quads import QuadSet
 from quadcast.render.camera import Camera, gl_matrix
 from quadcast.render.gl import compute, program, set_uniforms
+from quadcast.render.quadcache import QuadSetEdit
 from quadcast.render.renderer import CullFn, read_texture
 
 HERE = Path(__file__).resolve().parent
@@ -32,21 +36,23 @@ class MeshLayer:
     # >1 draws the layer slightly farther along each eye ray (same pixels), so that where a fill-in layer
     # (hidden, wide FOV) overlaps the main one at nearly the same depth, the main one wins the depth test.
     depth_scale: float = 1.0
+    edit: QuadSetEdit | None = None   # how `quads` came from an earlier QuadSet (see the module's doc)
 
 
-def quads_to_gpu(quads: QuadSet) -> tuple[np.ndarray, int]:
+def quads_to_gpu(quads: QuadSet, first_vertex: int = 0) -> tuple[np.ndarray, int]:
     """The (N, 24) float32 rows the mesh shader reads (offsets zero for flattened quads), each quad's head.w
-    holding its first vertex (its indices start at 3/2 of that) and whether it is flattened; and the vertex count."""
+    holding its first vertex (from `first_vertex` on; its indices start at 3/2 of that) and whether it is
+    flattened; and the vertex count."""
     n = len(quads)
     rows = np.zeros((n, QUAD_FLOATS), np.float32)
     head = rows[:, :4].view(np.uint32)
     head[:, 0], head[:, 1], head[:, 2] = quads.x, quads.y, quads.size_log2
     flat = quads.flattened | (quads.offset_index < 0)
     counts = np.where(flat, FLAT_VERTICES, FULL_VERTICES).astype(np.int64)
-    starts = np.cumsum(counts) - counts
+    starts = np.cumsum(counts) - counts + first_vertex
     total = int(counts.sum())
-    if total >= 1 << 31:
-        raise ValueError(f"quad mesh: {total} vertices do not fit a 31-bit vertex index")
+    if first_vertex + total >= 1 << 31:
+        raise ValueError(f"quad mesh: {first_vertex + total} vertices do not fit a 31-bit vertex index")
     head[:, 3] = starts.astype(np.uint32) | (flat.astype(np.uint32) << np.uint32(31))
     rows[:, 4:7] = quads.normal
     rows[:, 7] = quads.depth
@@ -57,13 +63,16 @@ def quads_to_gpu(quads: QuadSet) -> tuple[np.ndarray, int]:
 
 
 class _LayerBuffers:
-    """One layer's quads, vertices, indices and vertex array; grown as needed."""
+    """One layer's quads, vertices, indices and vertex array; grown as needed. `first` and `count` hold each
+    current quad's first vertex and vertex count; vertices up to `end` are in use, `dead` of them by freed quads."""
 
     def __init__(self) -> None:
         self.quads: QuadSet | None = None   # what the buffers were built from
         self.key = None
         self.quad_capacity = self.vertex_capacity = 0
         self.indices = 0
+        self.first = self.count = np.zeros(0, np.int64)
+        self.end = self.dead = 0
 
     def reserve(self, ctx: moderngl.Context, prog, quads: int, vertices: int) -> None:
         if quads <= self.quad_capacity and vertices <= self.vertex_capacity:
@@ -79,12 +88,20 @@ class _LayerBuffers:
         self.vao = ctx.vertex_array(prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")], self.index_buf)
 
 
+def _vertex_places(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each uploaded quad's first vertex and vertex count (from its head.w)."""
+    w = rows[:, 3].view(np.uint32)
+    flat = (w >> np.uint32(31)) != 0
+    return (w & np.uint32(0x7FFFFFFF)).astype(np.int64), np.where(flat, FLAT_VERTICES, FULL_VERTICES)
+
+
 class QuadMesh:
     """GPU buffers holding the layered mesh; `build` refills them (the layers that changed), `draw` renders them."""
 
     def __init__(self, ctx: moderngl.Context):
         self.ctx = ctx
         self.builders = {flat: compute(ctx, HERE / "quad_mesh.comp", FLATTENED=int(flat)) for flat in (True, False)}
+        self.eraser = compute(ctx, HERE / "quad_mesh_erase.comp")
         self.prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh.frag.glsl")
         self._buffers: list[_LayerBuffers] = []
         self.layers: list[tuple[MeshLayer, _LayerBuffers]] = []
@@ -92,7 +109,8 @@ class QuadMesh:
 
     def build(self, layers: list[MeshLayer], atlas_size: tuple[int, int]) -> None:
         """Generate every layer's mesh (one compute dispatch per layer), but for a layer whose quads are the very
-        same `QuadSet`, camera and atlas place as at the previous build."""
+        same `QuadSet`, camera and atlas place as at the previous build, and edit a layer whose `edit` starts
+        from them (see the module's doc)."""
         while len(self._buffers) < len(layers):
             self._buffers.append(_LayerBuffers())
         self.layers = []
@@ -100,7 +118,10 @@ class QuadMesh:
         for layer, buf in zip(layers, self._buffers):
             key = (layer.camera.to_array().tobytes(), tuple(layer.atlas_rect), tuple(atlas_size))
             if buf.quads is not layer.quads or buf.key != key:
-                self._generate(layer, buf, atlas_size)
+                edit = layer.edit
+                if not (edit is not None and buf.quads is edit.previous and buf.key == key
+                        and self._edit(layer, buf, atlas_size)):
+                    self._generate(layer, buf, atlas_size)
                 buf.quads, buf.key = layer.quads, key
             if buf.indices:
                 self.layers.append((layer, buf))
@@ -112,9 +133,47 @@ class QuadMesh:
         n = len(layer.quads)
         rows, vertices = quads_to_gpu(layer.quads)
         buf.indices = vertices * 3 // 2
+        buf.first, buf.count = _vertex_places(rows)
+        buf.end, buf.dead = vertices, 0
         if not n:
             return
         buf.reserve(self.ctx, self.prog, n, vertices)
+        self._run_builders(layer, buf, rows, atlas_size)
+
+    def _edit(self, layer: MeshLayer, buf: _LayerBuffers, atlas_size: tuple[int, int]) -> bool:
+        """Apply layer.edit to buffers built from edit.previous; False (nothing done) where the appended quads do
+        not fit the buffers or the freed vertices would outnumber the live ones: build from scratch then."""
+        edit = layer.edit
+        rows, added = quads_to_gpu(edit.appended, first_vertex=buf.end)
+        first, count = _vertex_places(rows)
+        first, count = np.concatenate([buf.first, first]), np.concatenate([buf.count, count])
+        freed = np.zeros(0, np.int64) if edit.kept is None else np.flatnonzero(~edit.kept)
+        dead = buf.dead + int(count[freed].sum())
+        end = buf.end + added
+        if (len(buf.first) != len(edit.previous) or (edit.kept is not None and len(edit.kept) != len(first))
+                or len(rows) > buf.quad_capacity or end > buf.vertex_capacity or 2 * dead > end):
+            return False
+        if len(rows):
+            self._run_builders(layer, buf, rows, atlas_size)
+        if len(freed):
+            # after the builders: a quad may be appended and freed by the same edit
+            self.ctx.memory_barrier()
+            places = np.stack([first[freed], count[freed]], axis=1).astype(np.uint32)
+            erased = self.ctx.buffer(places.tobytes())
+            erased.bind_to_storage_buffer(0)
+            buf.index_buf.bind_to_storage_buffer(2)
+            set_uniforms(self.eraser, u_count=len(places))
+            self.eraser.run((len(places) + 63) // 64)
+            erased.release()
+            first, count = first[edit.kept], count[edit.kept]
+        buf.first, buf.count, buf.end, buf.dead = first, count, end, dead
+        buf.indices = end * 3 // 2
+        return True
+
+    def _run_builders(self, layer: MeshLayer, buf: _LayerBuffers, rows: np.ndarray,
+                      atlas_size: tuple[int, int]) -> None:
+        """Run the mesh shader on `rows` (quads_to_gpu's, the head.w of each saying where its vertices go)."""
+        n = len(rows)
         flat = (rows[:, 3].view(np.uint32) >> np.uint32(31)) != 0
         n_flat = int(flat.sum())
         # Flattened quads first, each kind its own dispatch (their vertex places stay in head.w: same mesh).

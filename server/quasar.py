@@ -255,7 +255,8 @@ class QuasarServer(MethodServer):
                     ids_ref[changed_here] = ids_now[changed_here]
                 self.cache.update(updated)
             # Geometry revealed at the new pose: not covered by the cached mesh (§3.5.1), 1-pixel expansion.
-            self.mesh.build([MeshLayer(self.cache.quads, ref_cam, L.reference)], (L.width, L.height))
+            self.mesh.build([MeshLayer(self.cache.quads, ref_cam, L.reference, edit=self.cache.edit)],
+                            (L.width, L.height))
             self.mesh_view.render(self.mesh, camera, self.atlas.texture)
             mesh_depth = self.mesh_view.read_depth()
             depth = gbs[0].read_depth()
