@@ -31,6 +31,7 @@ class QuadCache:
         self.width, self.height = width, height
         self.quads = QuadSet.empty()
         self.edit: QuadSetEdit | None = None   # how `quads` came from the ones before it; None after a reset
+        self._owned_pixels = np.zeros(0, np.int64)   # pixels of the index map each quad owns
         self.index_map = np.full((height, width), -1, np.int32)
         self.freed_total = 0
 
@@ -43,13 +44,14 @@ class QuadCache:
         return int(sum(getattr(q, f).nbytes for f in ("x", "y", "size_log2", "flattened", "alpha", "normal",
                                                       "depth", "offsets")) + self.index_map.nbytes)
 
-    def _rasterize(self, quads: QuadSet, first_index: int) -> None:
+    def _rasterize(self, quads: QuadSet, first_index: int) -> tuple[np.ndarray, np.ndarray]:
         """Let each quad own the pixels it covers, in the order a loop would write them -- the 1-pixel quads by
         index, then the larger ones by index: where quads overlap (a malformed layer), the last one written wins.
-        Vectorized per size class; the write order is kept by taking, per pixel, the writer of highest rank."""
+        Vectorized per size class; the write order is kept by taking, per pixel, the writer of highest rank.
+        Returns the pixels written (flat indices, each once) and the quad each held before (-1: none)."""
         n = len(quads)
         if n == 0:
-            return
+            return np.zeros(0, np.int64), np.zeros(0, np.int32)
         levels = quads.size_log2
         xs, ys = quads.x.astype(np.int64), quads.y.astype(np.int64)
         order = np.concatenate([np.flatnonzero(levels == 0), np.flatnonzero(levels != 0)])
@@ -76,14 +78,17 @@ class QuadCache:
         if pixels.size < flat.size // 8:    # a residual frame's few quads: sort, the last write per pixel
             o = np.lexsort((ranks, pixels))
             last = o[np.r_[pixels[o][1:] != pixels[o][:-1], True]]
-            flat[pixels[last]] = order[ranks[last]] + first_index
+            written, values = pixels[last], order[ranks[last]] + first_index
         elif np.bincount(pixels, minlength=flat.size).max() <= 1:      # disjoint quads (a valid layer)
-            flat[pixels] = order[ranks] + first_index
+            written, values = pixels, order[ranks] + first_index
         else:
             winner = np.full(flat.size, -1, np.int64)
             np.maximum.at(winner, pixels, ranks)
             written = np.flatnonzero(winner >= 0)
-            flat[written] = order[winner[written]] + first_index
+            values = order[winner[written]] + first_index
+        before = flat[written]
+        flat[written] = values
+        return written, before
 
     def reset(self, quads: QuadSet) -> None:
         """A reference frame: its visible-layer quads replace everything."""
@@ -91,6 +96,7 @@ class QuadCache:
         self.edit = None
         self.index_map.fill(-1)
         self._rasterize(quads, 0)
+        self._owned_pixels = np.bincount((self.index_map + 1).ravel(), minlength=len(quads) + 1)[1:]
 
     def update(self, quads: QuadSet) -> int:
         """A residual frame's updated quads: append them, let them own their pixels, free quads left with none.
@@ -98,17 +104,24 @@ class QuadCache:
         if len(quads) == 0:
             return 0
         n_old = len(self.quads)
-        self._rasterize(quads, n_old)
+        written, before = self._rasterize(quads, n_old)
         combined = QuadSet.concatenate([self.quads, quads])
-        # pixels per quad, -1 (no quad) counted in bin 0
-        owned = np.bincount((self.index_map + 1).ravel(), minlength=len(combined) + 1)[1:] > 0
+        # pixels per quad: what each held, less what the update took, plus what it wrote (only the written
+        # pixels are counted, not the whole map)
+        n = len(combined)
+        pixels = np.concatenate([self._owned_pixels, np.zeros(len(quads), np.int64)])
+        pixels -= np.bincount(before[before >= 0], minlength=n)
+        pixels += np.bincount(self.index_map.reshape(-1)[written], minlength=n)
+        owned = pixels > 0
         freed = int((~owned).sum())
         self.edit = QuadSetEdit(self.quads, quads, owned if freed else None)
         if freed:
-            # new index of every old one, -1 for a freed quad; a lookup table indexed by old index + 1
-            remap = np.concatenate([[-1], np.where(owned, np.cumsum(owned) - 1, -1)]).astype(np.int32)
+            # new index of every old one, -1 for a freed quad; index -1 (no quad) wraps to the table's last entry
+            remap = np.concatenate([np.where(owned, np.cumsum(owned) - 1, -1), [-1]]).astype(np.int32)
             combined = combined.select(owned)
-            np.take(remap, self.index_map + 1, out=self.index_map)
+            pixels = pixels[owned]
+            np.take(remap, self.index_map, out=self.index_map, mode="wrap")
         self.quads = combined
+        self._owned_pixels = pixels
         self.freed_total += freed
         return freed

@@ -35,7 +35,7 @@ def test_cache_index_map_follows_the_write_order_also_where_quads_overlap(n, max
     cache.reset(first)
     loop_rasterize(reference, first, 0)
     np.testing.assert_array_equal(cache.index_map, reference)
-    for k in (5, 40):
+    for k in (5, 40, 1, 90, 17, 3, 60):
         update = random_quads(rng, k, w, h, min(max_size_log2, 3))
         n_old = len(cache)
         loop_rasterize(reference, update, n_old)
