@@ -74,11 +74,11 @@ class _LayerBuffers:
         self.first = self.count = np.zeros(0, np.int64)
         self.end = self.dead = 0
 
-    def reserve(self, ctx: moderngl.Context, prog, quads: int, vertices: int) -> None:
+    def reserve(self, ctx: moderngl.Context, prog, depth_prog, quads: int, vertices: int) -> None:
         if quads <= self.quad_capacity and vertices <= self.vertex_capacity:
             return
         if self.quad_capacity:
-            for b in (self.vao, self.quad_buf, self.vertex_buf, self.index_buf):
+            for b in (self.vao, self.depth_vao, self.quad_buf, self.vertex_buf, self.index_buf):
                 b.release()
         self.quad_capacity = max(quads, 2 * self.quad_capacity, 256)
         self.vertex_capacity = max(vertices, 2 * self.vertex_capacity, 256 * FLAT_VERTICES)
@@ -86,6 +86,7 @@ class _LayerBuffers:
         self.vertex_buf = ctx.buffer(reserve=self.vertex_capacity * 5 * 4)
         self.index_buf = ctx.buffer(reserve=self.vertex_capacity * 3 // 2 * 4)
         self.vao = ctx.vertex_array(prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")], self.index_buf)
+        self.depth_vao = ctx.vertex_array(depth_prog, [(self.vertex_buf, "3f 8x", "in_position")], self.index_buf)
 
 
 def _vertex_places(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -103,6 +104,7 @@ class QuadMesh:
         self.builders = {flat: compute(ctx, HERE / "quad_mesh.comp", FLATTENED=int(flat)) for flat in (True, False)}
         self.eraser = compute(ctx, HERE / "quad_mesh_erase.comp")
         self.prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh.frag.glsl")
+        self.depth_prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh_depth.frag.glsl")
         self._buffers: list[_LayerBuffers] = []
         self.layers: list[tuple[MeshLayer, _LayerBuffers]] = []
         self.quad_count = 0
@@ -137,7 +139,7 @@ class QuadMesh:
         buf.end, buf.dead = vertices, 0
         if not n:
             return
-        buf.reserve(self.ctx, self.prog, n, vertices)
+        buf.reserve(self.ctx, self.prog, self.depth_prog, n, vertices)
         self._run_builders(layer, buf, rows, atlas_size)
 
     def _edit(self, layer: MeshLayer, buf: _LayerBuffers, atlas_size: tuple[int, int]) -> bool:
@@ -191,34 +193,45 @@ class QuadMesh:
                              u_atlas_size=(float(atlas_size[0]), float(atlas_size[1])))
                 builder.run((count - first + 63) // 64)
 
-    def draw(self, camera: Camera, atlas: moderngl.Texture) -> None:
-        """Render the mesh from `camera` into the bound framebuffer (depth test on)."""
-        atlas.use(0)
-        set_uniforms(self.prog, u_atlas=0, u_proj=gl_matrix(camera.projection_matrix()),
-                     u_max_depth=0.999 * camera.frustum.far)
+    def draw(self, camera: Camera, atlas: moderngl.Texture | None) -> None:
+        """Render the mesh from `camera` into the bound framebuffer (depth test on): colour from `atlas` and view
+        depth into its two targets, or, without an atlas, the view depth alone into its one target."""
+        prog = self.prog if atlas is not None else self.depth_prog
+        if atlas is not None:
+            atlas.use(0)
+            set_uniforms(prog, u_atlas=0)
+        set_uniforms(prog, u_proj=gl_matrix(camera.projection_matrix()), u_max_depth=0.999 * camera.frustum.far)
         view = camera.view_matrix()
         for layer, buf in self.layers:
-            set_uniforms(self.prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()),
+            set_uniforms(prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()),
                          u_depth_scale=float(layer.depth_scale))
-            buf.vao.render(moderngl.TRIANGLES, vertices=buf.indices)
+            (buf.vao if atlas is not None else buf.depth_vao).render(moderngl.TRIANGLES, vertices=buf.indices)
 
 
 class MeshView:
     """An off-screen target for drawing a `QuadMesh` at one size: colour (alpha 1 where drawn), linear view depth
-    (R32F, 0 where nothing was drawn) and the depth buffer."""
+    (R32F, 0 where nothing was drawn) and the depth buffer. With `depth_only` (a server finding what the client's
+    mesh covers) no colour: the mesh is drawn without its atlas, the same depths for less work."""
 
-    def __init__(self, ctx: moderngl.Context, width: int, height: int, clear_color=(0.0, 0.0, 0.0)):
+    def __init__(self, ctx: moderngl.Context, width: int, height: int, clear_color=(0.0, 0.0, 0.0),
+                 depth_only: bool = False):
         self.ctx, self.width, self.height = ctx, width, height
-        self.color = ctx.texture((width, height), 4)
+        self.depth_only = depth_only
+        self.color = None if depth_only else ctx.texture((width, height), 4)
         self.view_depth = ctx.texture((width, height), 1, dtype="f4")
         self.view_depth.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.depth = ctx.depth_texture((width, height))
-        self.fbo = ctx.framebuffer([self.color, self.view_depth], self.depth)
+        targets = [self.view_depth] if depth_only else [self.color, self.view_depth]
+        self.fbo = ctx.framebuffer(targets, self.depth)
         self.clear_color = clear_color
 
-    def render(self, mesh: QuadMesh, camera: Camera, atlas: moderngl.Texture, cull: CullFn | None = None) -> None:
-        """Clear and draw `mesh` from `camera` (depth test LESS). `cull` (see `quadcast.render.renderer.CullFn`)
-        restricts the draw to the pixels it leaves at depth 1 (client.stereo's mode 2)."""
+    def render(self, mesh: QuadMesh, camera: Camera, atlas: moderngl.Texture | None = None,
+               cull: CullFn | None = None) -> None:
+        """Clear and draw `mesh` from `camera` (depth test LESS), coloured from `atlas` (none for a depth-only
+        view). `cull` (see `quadcast.render.renderer.CullFn`) restricts the draw to the pixels it leaves at depth
+        1 (client.stereo's mode 2)."""
+        if (atlas is None) != self.depth_only:
+            raise ValueError("MeshView.render: a depth-only view takes no atlas, a colour view needs one")
         self.fbo.use()
         self.fbo.clear(*self.clear_color, 0.0, depth=1.0)
         if cull is not None:

@@ -64,7 +64,7 @@ class QuadStreamServer(MethodServer):
         self.atlas = AtlasComposer(self.ctx, self.layout)
         self.encoder = AtlasEncoder(self.layout.width, self.layout.height, s.video)
         self.mesh = QuadMesh(self.ctx)
-        self.mesh_view = MeshView(self.ctx, s.width, s.height)
+        self.mesh_view = MeshView(self.ctx, s.width, s.height, depth_only=True)
         self.frame_id = 0
         self._keyframe = True
 
@@ -91,7 +91,7 @@ class QuadStreamServer(MethodServer):
             mask = None
             if mesh_layers:  # only what the earlier views' quads do not already cover, grown by one pixel
                 self.mesh.build(mesh_layers, (self.layout.width, self.layout.height))
-                self.mesh_view.render(self.mesh, cam, self.atlas.texture)
+                self.mesh_view.render(self.mesh, cam)
                 covered_depth, depth = self.mesh_view.read_depth(), gb.read_depth()
                 with np.errstate(invalid="ignore"):
                     new = ~(np.abs(covered_depth - depth) <= s.covered_tolerance * depth)

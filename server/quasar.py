@@ -89,7 +89,7 @@ class QuasarServer(MethodServer):
         self.encoder = AtlasEncoder(self.layout.width, self.layout.height, s.video)
         self.cache = QuadCache(s.width, s.height)
         self.mesh = QuadMesh(self.ctx)
-        self.mesh_view = MeshView(self.ctx, s.width, s.height)
+        self.mesh_view = MeshView(self.ctx, s.width, s.height, depth_only=True)
         self.frame_id = 0
         self.reference_id = -1
         self.reference_camera: Camera | None = None
@@ -257,7 +257,7 @@ class QuasarServer(MethodServer):
             # Geometry revealed at the new pose: not covered by the cached mesh (§3.5.1), 1-pixel expansion.
             self.mesh.build([MeshLayer(self.cache.quads, ref_cam, L.reference, edit=self.cache.edit)],
                             (L.width, L.height))
-            self.mesh_view.render(self.mesh, camera, self.atlas.texture)
+            self.mesh_view.render(self.mesh, camera)
             mesh_depth = self.mesh_view.read_depth()
             depth = gbs[0].read_depth()
             with np.errstate(invalid="ignore"):

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from quadcast.protocol.quads import OFFSETS_PER_QUAD, QuadSet
 from quadcast.render.camera import Camera, Pose
@@ -71,3 +72,27 @@ def test_cache_mesh_edited_after_updates_equals_a_fresh_build(ctx):
         view.render(fresh, eye, atlas)
         np.testing.assert_array_equal(image_edited, view.read_color())
     assert freed > 0 and builds["edit"] > 0
+
+
+def test_depth_only_view_gives_the_colour_views_depths(ctx):
+    """The server's depth-only MeshView (no atlas, no colour) writes exactly the view depth a colour view writes,
+    and each kind of view refuses the other's call."""
+    rng = np.random.default_rng(3)
+    w, h = 64, 36
+    camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
+    eye = Camera.perspective(Pose.look_at([-0.2, 0.1, 0.1], [0.0, 0.0, -4.0]), w, h)
+    cache = QuadCache(w, h)
+    cache.reset(camera_facing_quads(rng, 900, w, h, 2))
+    mesh = QuadMesh(ctx)
+    mesh.build([MeshLayer(cache.quads, camera, (0, 0, w, h))], (w, h))
+    atlas = ctx.texture((w, h), 4, rng.integers(0, 256, (h, w, 4), dtype=np.uint8).tobytes())
+    colour, depth_only = MeshView(ctx, w, h), MeshView(ctx, w, h, depth_only=True)
+    colour.render(mesh, eye, atlas)
+    depth_only.render(mesh, eye)
+    expected = colour.read_depth()
+    assert np.isfinite(expected).mean() > 0.5
+    np.testing.assert_array_equal(depth_only.read_depth(), expected)
+    with pytest.raises(ValueError, match="depth-only"):
+        depth_only.render(mesh, eye, atlas)
+    with pytest.raises(ValueError, match="needs one"):
+        colour.render(mesh, eye)
