@@ -1,7 +1,8 @@
 #version 430
 // Quad generation (QUASAR 3.2.1): one quad proxy per G-buffer pixel with 16 depth offsets. Each of the 3x3
 // lattice points of the pixel (corners, edge midpoints, centre) is projected onto the pixel's own plane and the
-// planes of the neighbours that share it; neighbours within delta_max (normalised depth) are averaged in.
+// planes of the neighbours that share it; neighbours within delta_max (normalised depth) are averaged in. The
+// neighbours' planes come from quad_planes.comp, computed once per pixel.
 layout(local_size_x = 8, local_size_y = 8) in;
 #include "quad.glsl"
 #include "quad_entry.glsl"
@@ -9,33 +10,11 @@ layout(local_size_x = 8, local_size_y = 8) in;
 
 layout(std430, binding = 0) writeonly buffer Planes0 { vec4 planes[]; };
 layout(std430, binding = 1) writeonly buffer Offsets0 { vec4 offs[]; };
-uniform sampler2D u_position;   // view-space position, w > 0 where geometry (GL rows: bottom first)
-uniform sampler2D u_normal;
-uniform usampler2D u_mask;      // optional: only pixels with mask != 0 get quads
-uniform bool u_use_mask;
+#include "quad_pixel.glsl"
+uniform sampler2D u_pixel_planes;   // quad_planes.comp
 uniform bool u_exclude_inner;   // wide FOV: skip pixels whose ray lies inside the main view's frustum
 uniform vec4 u_inner_frustum;   // the main view's l, r, b, t at distance 1
 uniform float u_delta_max;
-uniform float u_max_angle;      // radians: normals are kept within this angle of the view ray
-uniform float u_sky_distance;   // > 0: pixels with no geometry get a camera-facing quad this far away
-uniform float u_max_depth;      // geometry farther than this (view depth) gets no quad: the far field shows it
-
-bool load(ivec2 p, out vec3 n, out vec3 pos) {
-    if (any(lessThan(p, ivec2(0))) || any(greaterThanEqual(p, u_size))) return false;
-    ivec2 g = ivec2(p.x, u_size.y - 1 - p.y);
-    if (u_use_mask && texelFetch(u_mask, g, 0).r == 0u) return false;
-    vec4 P = texelFetch(u_position, g, 0);
-    if (P.w > 0.0 && -P.z > u_max_depth) return false;
-    if (P.w <= 0.0) {
-        if (u_sky_distance <= 0.0) return false;
-        pos = normalize(ray_dir(vec2(p) + 0.5)) * u_sky_distance;
-        n = -normalize(pos);
-        return true;
-    }
-    pos = P.xyz;
-    n = normalize(texelFetch(u_normal, g, 0).xyz);
-    return true;
-}
 
 void main() {
     ivec2 p = tile_invocation();
@@ -53,15 +32,19 @@ void main() {
     n0 = limit_grazing(n0, normalize(-P0), u_max_angle);
     float d0 = dot(n0, P0);
 
-    // Neighbour planes (3x3 block; the centre is the pixel itself).
+    // Neighbour planes (3x3 block; the centre is the pixel itself), as quad_planes.comp left them.
     vec3 nn[9];
     float dn[9];
     bool ok[9];
     for (int j = 0; j < 3; ++j) for (int i = 0; i < 3; ++i) {
         int k = j * 3 + i;
-        vec3 n, P;
-        ok[k] = (k != 4) && load(p + ivec2(i - 1, j - 1), n, P);
-        if (ok[k]) { n = limit_grazing(n, normalize(-P), u_max_angle); nn[k] = n; dn[k] = dot(n, P); }
+        ivec2 q = p + ivec2(i - 1, j - 1);
+        bool inside = all(greaterThanEqual(q, ivec2(0))) && all(lessThan(q, u_size));
+        vec4 e = texelFetch(u_pixel_planes, clamp(q, ivec2(0), u_size - 1), 0);
+        if (!inside) e = vec4(0.0);
+        ok[k] = (k != 4) && e.xyz != vec3(0.0);
+        nn[k] = e.xyz;
+        dn[k] = e.w;
     }
 
     // Offsets at the 3x3 lattice points (a, b) in half-pixel steps from the pixel's top-left corner. The

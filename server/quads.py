@@ -92,13 +92,27 @@ def grow_mask(mask: np.ndarray) -> np.ndarray:
     return grown
 
 
+def tile_ring(codes: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
+    """The (ty << 16) | tx codes of the tiles of a (tw, th) grid that touch one of `codes` (8-neighbourhood) but
+    are not among them."""
+    tw, th = grid
+    listed = np.zeros((th + 2, tw + 2), bool)
+    listed[(codes >> 16).astype(np.int64) + 1, (codes & 0xFFFF).astype(np.int64) + 1] = True
+    near = listed.copy()
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            near[1:-1, 1:-1] |= listed[1 + dy:th + 1 + dy, 1 + dx:tw + 1 + dx]
+    ty, tx = np.nonzero(near[1:-1, 1:-1] & ~listed[1:-1, 1:-1])
+    return (ty.astype(np.uint32) << 16) | tx.astype(np.uint32)
+
+
 def quad_map_levels(width: int, height: int) -> int:
     """m = floor(log2(min(w, h))) + 1 Quad Maps (QUASAR §3.2), capped at the 80-bit format's 2^11 quads."""
     return min(int(math.floor(math.log2(min(width, height)))) + 1, 12)
 
 
 class QuadGenerator:
-    """Pre-allocated Quad Maps for one layer size, and the three compute stages."""
+    """Pre-allocated Quad Maps for one layer size, and the compute stages: pixel planes, create, merge, gather."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int):
         self.ctx, self.width, self.height = ctx, width, height
@@ -108,9 +122,14 @@ class QuadGenerator:
         self.offsets = [ctx.buffer(reserve=w * h * OFFSET_BYTES) for w, h in self.sizes]
         self.capacity = width * height
         self.tile_grids = [(-(-w // TILE), -(-h // TILE)) for w, h in self.sizes]
-        self.tiles = ctx.buffer(reserve=4 * sum(tw * th for tw, th in self.tile_grids))
+        # every level's tile list, then the ring around level 0's (the plane pass's extra tiles)
+        tw, th = self.tile_grids[0]
+        self.tiles = ctx.buffer(reserve=4 * (sum(w * h for w, h in self.tile_grids) + tw * th))
+        self.pixel_planes = ctx.texture((width, height), 4, dtype="f4")   # quad_planes.comp's
+        self.pixel_planes.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.counter = ctx.buffer(reserve=4)
         self.gathered = ctx.buffer(reserve=self.capacity * QUAD_FLOATS * 4)
+        self.plane_pass = compute(ctx, HERE / "quad_planes.comp")
         self.create = compute(ctx, HERE / "quad_create.comp")
         self.merge = compute(ctx, HERE / "quad_merge.comp")
         self.gather = compute(ctx, HERE / "quad_gather.comp")
@@ -205,27 +224,39 @@ class QuadGenerator:
         # Without sky quads a pixel without geometry gets no quad: only tiles holding some need the passes.
         occupied = None if params.sky else self.occupied_tiles(position, params.max_depth)
         tiles = self.active_tiles(camera, mask, inner, occupied)
+        ring = tile_ring(tiles[0], self.tile_grids[0])
         bases = np.concatenate([[0], np.cumsum([len(t) for t in tiles])]).astype(int)
         if len(tiles[0]):
-            self.tiles.write(np.concatenate(tiles).astype(np.uint32).tobytes())
+            self.tiles.write(np.concatenate(tiles + [ring]).astype(np.uint32).tobytes())
         if len(tiles[0]) < self.tile_grids[0][0] * self.tile_grids[0][1]:
             for buf in self.planes:       # entries outside the tiles are empty: the passes do not visit them
                 buf.clear()
         self.tiles.bind_to_storage_buffer(5)
-        prog = self.create
-        self._camera_uniforms(prog, camera)
         position.use(0)
         normal.use(1)
         (self._upload_mask(mask) if mask is not None else self._empty_mask).use(2)
+        pixel = dict(u_position=0, u_normal=1, u_mask=2, u_use_mask=mask is not None, u_max_angle=max_angle,
+                     u_sky_distance=camera.frustum.far * 0.9 if params.sky else 0.0,
+                     u_max_depth=params.max_depth if params.max_depth > 0 else 3.0e38)
+        self.pixel_planes.bind_to_image(0, read=False, write=True)
+        self.pixel_planes.use(3)
+        if len(tiles[0]):
+            # pixel planes on the create pass's tiles and the ring around them: all a create invocation reads
+            prog = self.plane_pass
+            self._camera_uniforms(prog, camera)
+            set_uniforms(prog, **pixel)
+            self._run_tiles(prog, bases[0], len(tiles[0]))
+            if len(ring):
+                self._run_tiles(prog, bases[-1], len(ring))
+            ctx.memory_barrier()
+        prog = self.create
+        self._camera_uniforms(prog, camera)
         fi = inner.frustum if inner is not None else None
-        set_uniforms(prog, u_position=0, u_normal=1, u_mask=2, u_use_mask=mask is not None,
-                     u_exclude_inner=inner is not None,
+        set_uniforms(prog, u_pixel_planes=3, u_exclude_inner=inner is not None,
                      # 2% inside the main view's edges, so the wide view overlaps it by a pixel or two
                      u_inner_frustum=tuple(0.98 * v / fi.near for v in (fi.left, fi.right, fi.bottom, fi.top))
                      if fi else (0.0, 0.0, 0.0, 0.0),
-                     u_delta_max=params.delta_max, u_max_angle=max_angle,
-                     u_sky_distance=camera.frustum.far * 0.9 if params.sky else 0.0,
-                     u_max_depth=params.max_depth if params.max_depth > 0 else 3.0e38)
+                     u_delta_max=params.delta_max, **pixel)
         self.planes[0].bind_to_storage_buffer(0)
         self.offsets[0].bind_to_storage_buffer(1)
         if len(tiles[0]):

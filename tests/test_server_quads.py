@@ -98,6 +98,14 @@ def _same_quads(a, b) -> bool:
                                      for f in ("x", "y", "size_log2", "flattened", "normal", "depth", "offsets")))
 
 
+def test_tile_ring_is_the_tiles_around_a_list_clipped_to_the_grid():
+    from quadcast.server.quads import tile_ring
+    code = lambda ty, tx: (ty << 16) | tx
+    ring = tile_ring(np.array([code(0, 0), code(2, 5)], np.uint32), (6, 4))
+    expected = {code(0, 1), code(1, 0), code(1, 1)} | {code(y, x) for y in (1, 2, 3) for x in (4, 5)} - {code(2, 5)}
+    assert set(ring.tolist()) == expected
+
+
 def test_tile_lists_give_the_quads_of_the_whole_grid(ctx, courtyard_renderer, monkeypatch):
     """The quad passes visit only 8x8 tiles holding a masked pixel, or (wide view) not wholly inside the main
     view and holding geometry: the quads are those a pass over every tile gives, and no Quad Map entry left
