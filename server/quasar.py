@@ -43,6 +43,9 @@ class QuasarSettings:
     far_split_m: float = 0.0             # > 0: geometry farther than this gets no quads (the far field shows it)
     connectivity: float = 0.001          # EDP: relative depth gap that is still the same surface
     change_threshold: float = 0.01       # relative depth change that makes a reference pixel "updated"
+    # QUASAR's boundary expansion (§3.5.1) of the revealed region, in pixels. Off by default: on the real-trace
+    # benchmark one pixel cost 8-13% of the rate for 0.5-0.7% of FLIP (see README, "Boundary expansion").
+    reveal_expansion_px: int = 0
     zstd_level: int = 3
     depth_bits: int | None = 12          # quad depths' mantissa bits on the wire (protocol.quads.round_mantissa)
     video: VideoSettings = field(default_factory=lambda: VideoSettings(crf=DEFAULT_CRF["quasar"]))
@@ -54,6 +57,8 @@ class QuasarSettings:
             raise ValueError(f"viewcell radius must be >= 0 m, got {self.viewcell_radius}")
         if self.reference_every < 1:
             raise ValueError(f"reference_every must be >= 1, got {self.reference_every}")
+        if not 0 <= self.reveal_expansion_px <= 4:
+            raise ValueError(f"reveal_expansion_px must be in 0..4, got {self.reveal_expansion_px}")
         if self.far_block < 2 or self.far_block & (self.far_block - 1):
             raise ValueError(f"far_block must be a power of 2 >= 2, got {self.far_block}")
 
@@ -254,7 +259,8 @@ class QuasarServer(MethodServer):
                     depth_ref[changed_here] = depth_now[changed_here]
                     ids_ref[changed_here] = ids_now[changed_here]
                 self.cache.update(updated)
-            # Geometry revealed at the new pose: not covered by the cached mesh (§3.5.1), 1-pixel expansion.
+            # Geometry revealed at the new pose: not covered by the cached mesh (§3.5.1), grown by
+            # reveal_expansion_px (QUASAR's boundary expansion; off by default).
             self.mesh.build([MeshLayer(self.cache.quads, ref_cam, L.reference, edit=self.cache.edit)],
                             (L.width, L.height))
             self.mesh_view.render(self.mesh, camera)
@@ -262,7 +268,8 @@ class QuasarServer(MethodServer):
             depth = gbs[0].read_depth()
             with np.errstate(invalid="ignore"):
                 revealed = np.isinf(mesh_depth) | (depth < mesh_depth * (1 - s.change_threshold))
-            revealed = grow_mask(revealed)
+            for _ in range(s.reveal_expansion_px):
+                revealed = grow_mask(revealed)
             if self.far_field is not None and s.far_split_m > 0:
                 revealed &= ~(depth > s.far_split_m)       # far geometry (and revealed sky) is the far field's
             rev = quads(gbs[0], camera, self.visible_params, mask=revealed) if revealed.any() else QuadSet.empty()

@@ -193,6 +193,27 @@ def test_residual_frame_covers_only_the_moving_object_and_what_it_reveals(ctx, m
     assert residual.size_bytes < reference.size_bytes
 
 
+def test_boundary_expansion_grows_the_revealed_region_by_its_pixels(ctx, courtyard_renderer):
+    """reveal_expansion_px (QUASAR's boundary expansion, off by default): with one pixel the revealed quads cover
+    what they cover without it and a ring around it."""
+    covers = []
+    for px in (0, 1):
+        server = QuasarServer(courtyard_renderer, QuasarSettings(width=160, height=96, layers=2,
+                                                                 reveal_expansion_px=px))
+        server.encode(Pose.look_at([0, 1.6, 6], [0, 1.5, 0]), 0.0)
+        residual = server.encode(Pose.look_at([0.25, 1.6, 5.9], [0, 1.5, 0]), 0.0)
+        revealed = next(l for l in decode_quad_frame(residual.geometry).layers if l.kind == LayerKind.REVEALED).quads
+        cover = np.zeros((96, 160), bool)
+        for x, y, s in zip(revealed.x, revealed.y, revealed.size_log2):
+            cover[y:y + (1 << s), x:x + (1 << s)] = True
+        covers.append(cover)
+    without, with_ring = covers
+    assert 0 < without.sum() and not (without & ~with_ring).any()
+    assert with_ring.sum() > 1.3 * without.sum()
+    with pytest.raises(ValueError, match="reveal_expansion_px"):
+        QuasarSettings(reveal_expansion_px=-1)
+
+
 def test_encode_command_writes_decodable_video_and_stats(tmp_path):
     import quadcast.cli as quadcast
     out = tmp_path / "enc"
