@@ -364,6 +364,12 @@ class QuadSet:
             offsets=np.concatenate([s.offsets for s in sets]),
         )
 
+    def with_depth_bits(self, bits: int) -> QuadSet:
+        """The same quads with their depths rounded to ``bits`` mantissa bits (:func:`round_mantissa`)."""
+        columns = {name: getattr(self, name) for name in ("x", "y", "size_log2", "flattened", "alpha", "normal",
+                                                          "offsets")}
+        return QuadSet._decoded(depth=round_mantissa(self.depth, bits), **columns)
+
     def select(self, mask: Any) -> QuadSet:
         """The quads picked by a boolean mask of length N or by an integer index array.
 

@@ -626,6 +626,15 @@ def test_round_mantissa_is_nearest_within_its_bound(depth: np.ndarray, bits: int
         assert np.array_equal(rounded, depth)
 
 
+def test_with_depth_bits_rounds_only_the_depths() -> None:
+    quads = smooth_frame().layers[0].quads
+    rounded = quads.with_depth_bits(7)
+    assert np.array_equal(rounded.depth, round_mantissa(quads.depth, 7))
+    assert not np.array_equal(rounded.depth, quads.depth)
+    for name in ("x", "y", "size_log2", "flattened", "alpha", "normal", "offsets"):
+        assert np.array_equal(getattr(rounded, name), getattr(quads, name))
+
+
 def test_round_mantissa_rejects_a_bad_bit_count() -> None:
     huge = np.array([np.finfo(np.float32).max], np.float32)
     assert round_mantissa(huge, 4)[0] == huge[0]          # would round past the largest float32: kept

@@ -214,6 +214,22 @@ def test_boundary_expansion_grows_the_revealed_region_by_its_pixels(ctx, courtya
         QuasarSettings(reveal_expansion_px=-1)
 
 
+def test_hidden_layers_and_wide_view_are_sent_at_fill_depth_bits(ctx, courtyard_renderer):
+    """Depths on the wire: 12 mantissa bits for the visible layer, fill_depth_bits (7) for the hidden layers and
+    the wide view."""
+    server = QuasarServer(courtyard_renderer, QuasarSettings(width=160, height=96, layers=3))
+    frame = decode_quad_frame(server.encode(Pose.look_at([0, 1.6, 6], [0, 1.5, 0]), 0.0).geometry)
+    low_bits = {}
+    for layer in frame.layers:
+        if len(layer.quads):
+            bits = layer.quads.depth.astype(np.float32).view(np.uint32) & np.uint32((1 << 23) - 1)
+            low_bits.setdefault(layer.kind, []).append(int(np.bitwise_or.reduce(bits)))
+    assert {LayerKind.VISIBLE, LayerKind.HIDDEN, LayerKind.WIDE} <= set(low_bits)
+    kept = lambda masks: 23 - min((m & -m).bit_length() - 1 for m in masks if m)   # highest dropped bit + 1
+    assert kept(low_bits[LayerKind.VISIBLE]) == 12
+    assert kept(low_bits[LayerKind.HIDDEN]) <= 7 and kept(low_bits[LayerKind.WIDE]) <= 7
+
+
 def test_encode_command_writes_decodable_video_and_stats(tmp_path):
     import quadcast.cli as quadcast
     out = tmp_path / "enc"
