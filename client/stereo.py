@@ -126,8 +126,10 @@ class StereoSynthesizer:
         self.reproject_cs = compute(ctx, HERE / "yoro_reproject.comp")
         self.scan_cs = compute(ctx, HERE / "yoro_scan.comp")
         fixed = dict(LINEAR=int(bool(linear)), COARSE=int(self.intermediate_width < self.width))
-        self.patch_cs = compute(ctx, HERE / "yoro_patch.comp", HOLES=0, **fixed)   # covered pixels; lists holes
-        self.hole_cs = compute(ctx, HERE / "yoro_patch.comp", HOLES=1, **fixed)    # the listed holes
+        # covered pixels (and lists the holes), with and without the edge reject; the listed holes
+        self.patch_cs = {edges: compute(ctx, HERE / "yoro_patch.comp", HOLES=0, EDGES=int(edges), **fixed)
+                         for edges in (True, False)}
+        self.hole_cs = compute(ctx, HERE / "yoro_patch.comp", HOLES=1, EDGES=0, **fixed)
         self.hole_groups_cs = compute(ctx, HERE / "yoro_hole_groups.comp")
         self.composite_cs = compute(ctx, HERE / "stereo_composite.comp")
         self.mask_prog = program(ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "stereo_mask.frag.glsl")
@@ -212,8 +214,10 @@ class StereoSynthesizer:
         focal_px = camera.focal_px[0]
         color.use(0)
         depth.use(1)
-        settings = self.settings if edge_mask else {**self.settings, "u_edge_radius": 0.0}
-        for cs in (self.patch_cs, self.hole_cs):
+        edges = edge_mask and self.settings["u_edge_radius"] > 0
+        patch_cs = self.patch_cs[edges]
+        settings = self.settings if edges else {**self.settings, "u_edge_radius": 0.0}
+        for cs in (patch_cs, self.hole_cs):
             set_uniforms(cs, u_color=0, u_depth=1, u_depth_is_position=is_position,
                          u_disparity_scale=focal_px * self.ipd, **settings)
         self.imbuffer.bind_to_image(0, read=True, write=False)
@@ -222,7 +226,7 @@ class StereoSynthesizer:
         self.holes.write(b"\0\0\0\0")
         self.holes.bind_to_storage_buffer(3)
         self.hole_groups.bind_to_storage_buffer(4)
-        self.patch_cs.run((self.width + 7) // 8, (self.height + 7) // 8)
+        patch_cs.run((self.width + 7) // 8, (self.height + 7) // 8)
         self.ctx.memory_barrier()
         self.hole_groups_cs.run(1)
         self.ctx.memory_barrier()

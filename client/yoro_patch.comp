@@ -9,8 +9,8 @@
 // Built twice: HOLES 0 runs on every pixel, patches the covered ones and lists the disoccluded ones; HOLES 1 runs
 // on that list only (an indirect dispatch). In one pass llvmpipe would run the hole kernel's loops for every
 // covered pixel too (it executes both sides of a branch for all 8 lanes) -- for the same reason the synthesizer's
-// fixed settings are compile-time: LINEAR (interpolate source colours along x) and COARSE (the ImBuffer is
-// narrower than the eye).
+// fixed settings are compile-time: LINEAR (interpolate source colours along x), COARSE (the ImBuffer is
+// narrower than the eye) and EDGES (compute the conservative edge reject; YORO alone, mode 1, has no use for it).
 #if HOLES
 layout(local_size_x = 64) in;
 #else
@@ -109,7 +109,11 @@ void main() {
 #endif
     float sx = (u + shift) * float(g_src_size.x) - 0.5;
     imageStore(u_out, p, vec4(color_at(sx, y), 1.0));
+#if EDGES
     imageStore(u_mask, p, vec4(0.0, near_edge(sx, y, depth) ? 1.0 : 0.0, 0.0, 0.0));
+#else
+    imageStore(u_mask, p, vec4(0.0));
+#endif
 #else
     // Disoccluded: r = (left edge, background depth, width, background-side neighbour).
     imageStore(u_mask, p, vec4(1.0, 0.0, 0.0, 0.0));

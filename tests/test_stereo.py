@@ -262,6 +262,17 @@ def test_mode2_rerenders_only_the_masked_pixels(renderer, synth, stereo):
     assert _psnr(merged, truth.color) > _psnr(synth_img, truth.color)
 
 
+def test_yoro_without_the_edge_reject_makes_the_same_eye(renderer, left_camera, synth, stereo):
+    """edge_mask=False (mode 1) runs the Patcher built without the conservative edge reject: the same colour and
+    disocclusions, no re-render mask."""
+    _, synth_img, mask, redo, _ = stereo
+    assert redo.any()
+    result = synth.synthesize_gbuffer(renderer.gbuffer(left_camera), edge_mask=False)
+    assert np.array_equal(result.read_color(), synth_img)
+    assert np.array_equal(result.read_disocclusion(), mask)
+    assert np.array_equal(result.read_rerender_mask(), mask)
+
+
 def test_linear_depth_input_matches_position_input(ctx, renderer, left_camera, synth, stereo):
     _, synth_img, mask, _, _ = stereo
     gb = renderer.gbuffer(left_camera)
