@@ -49,7 +49,7 @@ class QuasarSettings:
     zstd_level: int = 3
     depth_bits: int | None = 12          # quad depths' mantissa bits on the wire (protocol.quads.round_mantissa)
     # ... and those of the hidden layers and the wide view (None: depth_bits), whose flatten and similarity
-    # thresholds are already 10x relaxed: 7 bits (0.4%) cost <= 0.0001 FLIP on the real-trace benchmark and 5% of
+    # thresholds are already 10x relaxed: 7 bits (0.4%) cost <= 0.0001 FLIP on the real-trace benchmark and 5-6% of
     # the rate (README, "Fill-in depth precision")
     fill_depth_bits: int | None = 7
     video: VideoSettings = field(default_factory=lambda: VideoSettings(crf=DEFAULT_CRF["quasar"]))

@@ -96,3 +96,5 @@ def test_depth_only_view_gives_the_colour_views_depths(ctx):
         depth_only.render(mesh, eye, atlas)
     with pytest.raises(ValueError, match="needs one"):
         colour.render(mesh, eye)
+    with pytest.raises(ValueError, match="no colour"):
+        depth_only.read_color_drawn()
