@@ -1,7 +1,8 @@
 """The far field (after continuous near-far partitioning, seeds/002): a low-resolution cube map around the view cell.
 
-On every reference frame the server renders six 90° views from the reference pose's position -- a cube map of
-everything around the view cell, colour and range -- and sends it as six quad layers (`LayerKind.FAR`) whose
+On every reference frame the server renders six views from the reference pose's position -- a cube map of
+everything around the view cell, colour and range, each face a little wider than 90° so neighbouring faces
+overlap (`FACE_OVERLAP`) -- and sends it as six quad layers (`LayerKind.FAR`) whose
 colour sits in the video atlas. Each face is a grid of `block` x `block`-pixel quads forming one continuous
 surface at the range of what the face sees (the farthest depth around each grid corner, so near occluders are
 pushed back onto what lies behind them), with 16 depth offsets per quad so that neighbouring quads share their
@@ -24,10 +25,18 @@ FACE_DIRECTIONS = (((1, 0, 0), (0, 1, 0)), ((-1, 0, 0), (0, 1, 0)), ((0, 1, 0), 
                    ((0, -1, 0), (0, 0, -1)), ((0, 0, 1), (0, 1, 0)), ((0, 0, -1), (0, 1, 0)))
 
 
+# How far each face reaches past the cube's edges, as a fraction of its half-width at unit distance (0.1: about
+# 2.7 degrees). Two faces see the range at their shared edge each from its own image, so their edge vertices can
+# lie at different depths along the same rays, and an eye away from the cube's centre sees a seam open between
+# them; overlapping faces cover it.
+FACE_OVERLAP = 0.1
+
+
 def face_cameras(position, size: int, near: float, far: float) -> list[Camera]:
-    """The six 90° square cameras of a cube map at `position`."""
+    """The six square cameras of a cube map at `position`: 90° faces widened by `FACE_OVERLAP` on every side."""
     p = np.asarray(position, np.float64)
-    frustum = Frustum.symmetric(90.0, 1.0, near, far)
+    e = (1.0 + FACE_OVERLAP) * near
+    frustum = Frustum(-e, e, -e, e, near, far)
     return [Camera(Pose.look_at(p, p + np.asarray(d, np.float64), up), frustum, size, size)
             for d, up in FACE_DIRECTIONS]
 

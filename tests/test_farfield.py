@@ -101,3 +101,23 @@ def test_turning_away_from_what_was_sent_still_shows_the_far_field(courtyard_ren
     assert black[True] == 0.0, black
     if yaw >= 100:
         assert black[False] > 0.3, black          # without it, turning away shows nothing
+
+
+def test_no_pixel_is_left_uncovered_where_cube_faces_meet(courtyard_renderer):
+    """Looking up into the sky across the cube's vertical edges (yaw 45 degrees off a face) and its top edges: the
+    far field alone covers every pixel -- its faces overlap, so no seam opens between them at any pose."""
+    from quadcast.client.quasar import QuasarClient
+    from quadcast.server.quasar import QuasarServer, QuasarSettings
+    w, h = 160, 96
+    server = QuasarServer(courtyard_renderer, QuasarSettings(width=w, height=h))
+    client = QuasarClient(w, h, ctx=courtyard_renderer.ctx)
+    client.receive(server.encode(Pose([0.0, 1.6, 4.0]), 0.0))
+    uncovered = []
+    for yaw in (45.0, 135.0, -45.0, -135.0):
+        for pitch in (10.0, 30.0, 60.0):
+            for dx, dz in ((0.5, 0.0), (-0.5, 0.0), (0.0, 0.5), (0.0, -0.5)):
+                shown = Pose.from_euler([dx, 1.6, 4.0 + dz], pitch, yaw)
+                client.render(shown)
+                uncovered.append(int((~np.isfinite(client.view.read_depth())).sum()))
+    server.close()
+    assert sum(uncovered) == 0, uncovered
