@@ -89,6 +89,14 @@ class _LayerBuffers:
         self.depth_vao = ctx.vertex_array(depth_prog, [(self.vertex_buf, "3f 8x", "in_position")], self.index_buf)
 
 
+def uv_rect(rect: tuple[int, int, int, int], atlas_size: tuple[int, int]) -> tuple[float, float, float, float]:
+    """The atlas uv a layer's colour is sampled within (render/quad_mesh_fragment.glsl): its rect (x, y, w, h,
+    pixels from the top-left corner) half a texel in from every edge, as (u0, v0, u1, v1)."""
+    x, y, w, h = rect
+    aw, ah = atlas_size
+    return (x + 0.5) / aw, (y + 0.5) / ah, (x + w - 0.5) / aw, (y + h - 0.5) / ah
+
+
 def _vertex_places(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each uploaded quad's first vertex and vertex count (from its head.w)."""
     w = rows[:, 3].view(np.uint32)
@@ -205,6 +213,8 @@ class QuadMesh:
         set_uniforms(prog, u_proj=gl_matrix(camera.projection_matrix()), u_max_depth=0.999 * camera.frustum.far)
         view = camera.view_matrix()
         for layer, buf in self.layers:
+            if atlas is not None:
+                set_uniforms(prog, u_uv_rect=uv_rect(layer.atlas_rect, atlas.size))
             set_uniforms(prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()),
                          u_depth_scale=float(layer.depth_scale))
             (buf.vao if atlas is not None else buf.depth_vao).render(moderngl.TRIANGLES, vertices=buf.indices)

@@ -1,6 +1,7 @@
 """The layered quad mesh: a cache layer edited in place after residual updates draws what a fresh build draws."""
 from __future__ import annotations
 
+import moderngl
 import numpy as np
 import pytest
 
@@ -98,3 +99,24 @@ def test_depth_only_view_gives_the_colour_views_depths(ctx):
         colour.render(mesh, eye)
     with pytest.raises(ValueError, match="no colour"):
         depth_only.read_color_drawn()
+
+
+def test_a_layer_samples_only_its_own_atlas_rect(ctx):
+    """A quad at the edge of its layer's rect, magnified: bilinear filtering never reaches the atlas pixels around
+    the rect (another layer's), only the rect's own."""
+    quad = QuadSet(x=[0], y=[0], size_log2=[4], flattened=[True], alpha=[False], normal=[[0.0, 0.0, 1.0]],
+                   depth=[2.0], offsets=np.zeros((0, 16)))
+    camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), 16, 16)
+    atlas_img = np.zeros((32, 32, 4), np.uint8)
+    atlas_img[..., 1] = 255                                   # green around the rect
+    atlas_img[4:20, 8:24] = (255, 0, 0, 255)                  # the layer's rect: x 8, y 4, 16 x 16, red
+    atlas = ctx.texture((32, 32), 4, atlas_img.tobytes())
+    atlas.filter = (moderngl.LINEAR, moderngl.LINEAR)
+    mesh = QuadMesh(ctx)
+    mesh.build([MeshLayer(quad, camera, (8, 4, 16, 16))], (32, 32))
+    view = MeshView(ctx, 128, 128)                            # the same view, 8x magnified
+    view.render(mesh, Camera.perspective(Pose([0.0, 0.0, 0.0]), 128, 128), atlas)
+    image, drawn = view.read_color_drawn()
+    assert drawn.mean() > 0.95
+    assert image[drawn][:, 1].max() == 0, "green from outside the rect was filtered in"
+    assert image[drawn][:, 0].min() == 255

@@ -42,7 +42,8 @@ export class MeshRenderer {
                        ["v_position", "v_uv"]);
     this.expandU = uniforms(gl, this.expand, ["u_frustum", "u_near", "u_size", "u_atlas_rect", "u_atlas_size"]);
     this.mesh = link(gl, [shaders.meshVert, shaders.meshFrag], ["quad_mesh.vert.glsl", "quad_mesh.frag.glsl"]);
-    this.meshU = uniforms(gl, this.mesh, ["u_layer_to_view", "u_proj", "u_depth_scale", "u_max_depth", "u_atlas"]);
+    this.meshU = uniforms(gl, this.mesh, ["u_layer_to_view", "u_proj", "u_depth_scale", "u_max_depth", "u_atlas",
+                                          "u_uv_rect"]);
     this.quadBuffer = gl.createBuffer();
     this.vertexBuffer = gl.createBuffer();
     this.indexBuffer = gl.createBuffer();
@@ -135,7 +136,10 @@ export class MeshRenderer {
       gl.drawArraysInstanced(gl.POINTS, 0, VERTICES_PER_QUAD, l.count);
       gl.endTransformFeedback();
       gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, null);
-      this.layers.push({ camera: l.camera, depthScale: l.depthScale, first, count: l.count,
+      // the atlas uv its colour is sampled within: its rect half a texel in (render/quadmesh.py uv_rect)
+      const [x, y, w, h] = l.rect, [aw, ah] = this.atlasSize;
+      const uvRect = [(x + 0.5) / aw, (y + 0.5) / ah, (x + w - 0.5) / aw, (y + h - 0.5) / ah];
+      this.layers.push({ camera: l.camera, depthScale: l.depthScale, first, count: l.count, uvRect,
                          layerToWorld: cameraToWorld(l.camera.position, l.camera.quat) });
       first += l.count;
     }
@@ -171,6 +175,7 @@ export class MeshRenderer {
     gl.bindVertexArray(this.meshVao);
     for (const layer of this.layers) {
       gl.uniform1f(u.u_depth_scale, layer.depthScale);
+      gl.uniform4f(u.u_uv_rect, ...layer.uvRect);
       gl.uniformMatrix4fv(u.u_layer_to_view, false, new Float32Array(mul(view, layer.layerToWorld)));
       gl.drawElements(gl.TRIANGLES, INDICES_PER_QUAD * layer.count, gl.UNSIGNED_INT, INDICES_PER_QUAD * layer.first * 4);
     }
