@@ -70,9 +70,13 @@ class _LayerBuffers:
         self.quads: QuadSet | None = None   # what the buffers were built from
         self.key = None
         self.quad_capacity = self.vertex_capacity = 0
-        self.indices = 0
         self.first = self.count = np.zeros(0, np.int64)
         self.end = self.dead = 0
+
+    @property
+    def indices(self) -> int:
+        """Indices to draw: those of every vertex slot in use (a quad's start at 3/2 of its first vertex)."""
+        return self.end * 3 // 2
 
     def reserve(self, ctx: moderngl.Context, prog, depth_prog, quads: int, vertices: int) -> None:
         if quads <= self.quad_capacity and vertices <= self.vertex_capacity:
@@ -142,7 +146,6 @@ class QuadMesh:
     def _generate(self, layer: MeshLayer, buf: _LayerBuffers, atlas_size: tuple[int, int]) -> None:
         n = len(layer.quads)
         rows, vertices = quads_to_gpu(layer.quads)
-        buf.indices = vertices * 3 // 2
         buf.first, buf.count = _vertex_places(rows)
         buf.end, buf.dead = vertices, 0
         if not n:
@@ -179,7 +182,6 @@ class QuadMesh:
             erased.release()
             first, count = first[edit.kept], count[edit.kept]
         buf.first, buf.count, buf.end, buf.dead = first, count, end, dead
-        buf.indices = end * 3 // 2
         return True
 
     def _run_builders(self, layer: MeshLayer, buf: _LayerBuffers, rows: np.ndarray,

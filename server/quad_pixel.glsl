@@ -25,4 +25,3 @@ bool load(ivec2 p, out vec3 n, out vec3 pos) {
     n = normalize(texelFetch(u_normal, g, 0).xyz);
     return true;
 }
-

@@ -231,6 +231,10 @@ class QuasarServer(MethodServer):
             timings.add(tm)
             return q
 
+        def fill(q: QuadSet) -> QuadSet:
+            """A hidden layer's or the wide view's quads, their depths at fill_depth_bits."""
+            return q if s.fill_depth_bits is None else q.with_depth_bits(s.fill_depth_bits)
+
         L = self.layout
         cam_floats = camera.to_array()
         layers: list[QuadLayer] = []
@@ -284,9 +288,6 @@ class QuasarServer(MethodServer):
             layers.append(QuadLayer(LayerKind.UPDATED, s.width, s.height, ref_cam.to_array(), L.reference, updated))
             layers.append(QuadLayer(LayerKind.REVEALED, s.width, s.height, cam_floats, L.current, rev))
             self.frames_since_reference += 1
-        def fill(q: QuadSet) -> QuadSet:
-            return q if s.fill_depth_bits is None else q.with_depth_bits(s.fill_depth_bits)
-
         hidden_cam = self.layer_renderer.hidden_camera(camera)
         for gb, rect in zip(gbs[1:], L.hidden):
             hidden = fill(quads(gb, hidden_cam, self.hidden_params, generator=self.hidden_generator))
