@@ -124,8 +124,12 @@ class StereoSynthesizer:
                              u_continuity=float(continuity), u_edge_radius=float(edge_radius),
                              u_edge_disparity=float(edge_disparity), u_max_stretch=float(max_stretch))
         self.reproject_cs = compute(ctx, HERE / "yoro_reproject.comp")
-        self.scan_cs = compute(ctx, HERE / "yoro_scan.comp")
+        self.scan_cs = compute(ctx, HERE / "yoro_scan.comp", FUSED=0)
         fixed = dict(LINEAR=int(bool(linear)), COARSE=int(self.intermediate_width < self.width))
+        # a full-resolution ImBuffer: the three stages' row pass in one dispatch, with and without the edge reject
+        self.row_cs = None if fixed["COARSE"] else {
+            edges: compute(ctx, HERE / "yoro_scan.comp", FUSED=1, EDGES=int(edges), LINEAR=fixed["LINEAR"])
+            for edges in (True, False)}
         # covered pixels (and lists the holes), with and without the edge reject; the listed holes
         self.patch_cs = {edges: compute(ctx, HERE / "yoro_patch.comp", HOLES=0, EDGES=int(edges), **fixed)
                          for edges in (True, False)}
@@ -177,22 +181,71 @@ class StereoSynthesizer:
     def synthesize(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera,
                    edge_mask: bool = True) -> StereoResult:
         """The other eye from the dominant eye's colour (RGBA8), depth (GBuffer.position or R32F linear depth)
-        and camera: the three YORO stages, `reproject`, `scan` and `patch`. `edge_mask=False` skips the
-        conservative edge reject (the mask's g), which only mode 2 uses."""
+        and camera: the three YORO stages, `reproject`, `scan` and `patch` (with a full-resolution ImBuffer fused
+        into one row pass and the hole pass: the same images). `edge_mask=False` skips the conservative edge reject
+        (the mask's g), which only mode 2 uses."""
         self._check_inputs(color, depth, camera)
+        if self.row_cs is not None:
+            return self._synthesize_rows(color, depth, camera, edge_mask)
         self.reproject(depth, camera)
         self.scan()
         return self.patch(color, depth, camera, edge_mask)
+
+    def _set_reprojection(self, cs, depth: moderngl.Texture, camera: Camera, is_position: bool) -> None:
+        """Algorithm 1's uniforms (eq. 5's matrix, the frustum; depth on unit 1)."""
+        other, f = self.other_eye(camera), camera.frustum
+        matrix = other.projection_matrix() @ other.view_matrix() @ camera.pose.camera_to_world()
+        depth.use(1)
+        set_uniforms(cs, u_depth=1, u_depth_is_position=is_position, u_reproject=gl_matrix(matrix),
+                     u_extents=f.unit_extents)
+
+    def _patch_uniforms(self, edge_mask: bool, is_position: bool, camera: Camera) -> tuple[bool, dict]:
+        """Whether the edge reject runs, and the Patcher's uniforms (colour on unit 0, depth on unit 1)."""
+        edges = edge_mask and self.settings["u_edge_radius"] > 0
+        settings = self.settings if edges else {**self.settings, "u_edge_radius": 0.0}
+        return edges, dict(u_color=0, u_depth=1, u_depth_is_position=is_position,
+                           u_disparity_scale=camera.focal_px[0] * self.ipd, **settings)
+
+    def _synthesize_rows(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera,
+                         edge_mask: bool) -> StereoResult:
+        """`synthesize` with a full-resolution ImBuffer: one row pass (yoro_scan.comp, FUSED) does what
+        `reproject`, `scan` and the covered pixels of `patch` do, then the Patcher's hole pass fills the listed
+        disocclusions. The same images as the three stages."""
+        is_position = self._check_inputs(color, depth, camera)
+        edges, uniforms = self._patch_uniforms(edge_mask, is_position, camera)
+        row_cs = self.row_cs[edges]
+        self._set_reprojection(row_cs, depth, camera, is_position)
+        set_uniforms(row_cs, **uniforms)
+        color.use(0)
+        self.imbuffer.bind_to_image(1, read=True, write=True)
+        self.color.bind_to_image(2, read=False, write=True)
+        self.mask.bind_to_image(3, read=False, write=True)
+        self.holes.write(b"\0\0\0\0")
+        self.holes.bind_to_storage_buffer(3)
+        row_cs.run((self.height + 31) // 32)
+        self.ctx.memory_barrier()
+        return self._fill_holes(camera, uniforms)
+
+    def _fill_holes(self, camera: Camera, uniforms: dict) -> StereoResult:
+        """The Patcher's hole pass over the listed disocclusions (an indirect dispatch)."""
+        set_uniforms(self.hole_cs, **uniforms)
+        self.imbuffer.bind_to_image(0, read=True, write=False)
+        self.color.bind_to_image(1, read=False, write=True)
+        self.mask.bind_to_image(2, read=False, write=True)
+        self.holes.bind_to_storage_buffer(3)
+        self.hole_groups.bind_to_storage_buffer(4)
+        self.hole_groups_cs.run(1)
+        self.ctx.memory_barrier()
+        self.hole_cs.run_indirect(self.hole_groups)
+        self.ctx.memory_barrier()
+        self._last = StereoResult(self.color, self.mask, self.other_eye(camera))
+        return self._last
 
     def reproject(self, depth: moderngl.Texture, camera: Camera) -> None:
         """Algorithm 1 into `targets` (RG32F, ImBuffer size): where each pixel lands in the other eye (x in
         ImBuffer pixel-centre units) and its depth there."""
         is_position = self._check_inputs(None, depth, camera)
-        other, f = self.other_eye(camera), camera.frustum
-        matrix = other.projection_matrix() @ other.view_matrix() @ camera.pose.camera_to_world()
-        depth.use(1)
-        set_uniforms(self.reproject_cs, u_depth=1, u_depth_is_position=is_position, u_reproject=gl_matrix(matrix),
-                     u_extents=f.unit_extents)
+        self._set_reprojection(self.reproject_cs, depth, camera, is_position)
         self.targets.bind_to_image(0, read=False, write=True)
         self.reproject_cs.run((self.intermediate_width + 7) // 8, (self.height + 7) // 8)
         self.ctx.memory_barrier()
@@ -211,29 +264,19 @@ class StereoSynthesizer:
         """Algorithm 3, `imbuffer` + the dominant eye's colour and depth -> the other eye's colour and mask (its
         g, the conservative edge reject, only with `edge_mask`)."""
         is_position = self._check_inputs(color, depth, camera)
-        focal_px = camera.focal_px[0]
         color.use(0)
         depth.use(1)
-        edges = edge_mask and self.settings["u_edge_radius"] > 0
+        edges, uniforms = self._patch_uniforms(edge_mask, is_position, camera)
         patch_cs = self.patch_cs[edges]
-        settings = self.settings if edges else {**self.settings, "u_edge_radius": 0.0}
-        for cs in (patch_cs, self.hole_cs):
-            set_uniforms(cs, u_color=0, u_depth=1, u_depth_is_position=is_position,
-                         u_disparity_scale=focal_px * self.ipd, **settings)
+        set_uniforms(patch_cs, **uniforms)
         self.imbuffer.bind_to_image(0, read=True, write=False)
         self.color.bind_to_image(1, read=False, write=True)
         self.mask.bind_to_image(2, read=False, write=True)
         self.holes.write(b"\0\0\0\0")
         self.holes.bind_to_storage_buffer(3)
-        self.hole_groups.bind_to_storage_buffer(4)
         patch_cs.run((self.width + 7) // 8, (self.height + 7) // 8)
         self.ctx.memory_barrier()
-        self.hole_groups_cs.run(1)
-        self.ctx.memory_barrier()
-        self.hole_cs.run_indirect(self.hole_groups)
-        self.ctx.memory_barrier()
-        self._last = StereoResult(self.color, self.mask, self.other_eye(camera))
-        return self._last
+        return self._fill_holes(camera, uniforms)
 
     def read_imbuffer(self) -> np.ndarray:
         """The ImBuffer as (H, intermediate width, 4) float32, top row first (see `scan`)."""

@@ -8,6 +8,8 @@
 //   covered pixel:  (source u - target u, depth in the other eye, 0, 0)
 //   disocclusion:   (left edge x, background depth, width, background-side neighbour x or -1)
 
+#ifndef QUADCAST_STEREO_COMMON_GLSL
+#define QUADCAST_STEREO_COMMON_GLSL
 #include "camera.glsl"
 
 uniform sampler2D u_depth;
@@ -26,3 +28,23 @@ bool same_surface(float a, float b) {
     if (a >= SKY_DEPTH || b >= SKY_DEPTH) return a >= SKY_DEPTH && b >= SKY_DEPTH;
     return abs(a - b) <= u_continuity * min(a, b);
 }
+
+// YORO Algorithm 1 for ImBuffer pixel i of an ImBuffer `size` across: lift the dominant eye's depth sample at the
+// pixel's uv to a view-space point and move it with one matrix into the other eye's clip space. Returns (x where
+// it lands, in ImBuffer pixel-centre units, -1e9 behind the other eye; its depth there, SKY_DEPTH for sky).
+uniform mat4 u_reproject;   // dominant eye view space -> other eye clip space (M of YORO eq. 5)
+uniform vec4 u_extents;     // dominant eye's frustum l, r, b, t at distance 1
+
+vec2 landing(ivec2 i, ivec2 size) {
+    vec2 uv = (vec2(i) + 0.5) / vec2(size);
+    ivec2 src = ivec2(uv * vec2(textureSize(u_depth, 0)));
+    float z = source_depth(src);
+    vec3 ray = view_ray(u_extents, 1.0, uv);
+    vec4 p = z < SKY_DEPTH ? vec4(ray * z, 1.0) : vec4(ray, 0.0);  // sky: a direction (point at infinity)
+    vec4 c = u_reproject * p;
+    float x = -1e9;  // behind the other eye: lands nowhere
+    if (c.w > 0.0) x = (c.x / c.w * 0.5 + 0.5) * float(size.x) - 0.5;
+    return vec2(x, z < SKY_DEPTH ? c.w : SKY_DEPTH);
+}
+
+#endif

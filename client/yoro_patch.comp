@@ -7,7 +7,8 @@
 // The mask gets r = disoccluded, g = conservative edge reject (stereo shading reprojection's triangle filter:
 // a covered pixel whose source lies within u_edge_radius of something nearer is not trusted).
 // Built twice: HOLES 0 runs on every pixel, patches the covered ones and lists the disoccluded ones; HOLES 1 runs
-// on that list only (an indirect dispatch). In one pass llvmpipe would run the hole kernel's loops for every
+// on that list only (an indirect dispatch). The covered pixels' part is yoro_patch.glsl, which the fused row pass
+// (yoro_scan.comp, FUSED) runs too. In one pass llvmpipe would run the hole kernel's loops for every
 // covered pixel too (it executes both sides of a branch for all 8 lanes) -- for the same reason the synthesizer's
 // fixed settings are compile-time: LINEAR (interpolate source colours along x), COARSE (the ImBuffer is
 // narrower than the eye) and EDGES (compute the conservative edge reject; YORO alone, mode 1, has no use for it).
@@ -16,52 +17,14 @@ layout(local_size_x = 64) in;
 #else
 layout(local_size_x = 8, local_size_y = 8) in;
 #endif
-#include "stereo_common.glsl"
-
 layout(std430, binding = 3) buffer Holes { uint hole_count; uint holes[]; };   // (y << 16) | x
 
 layout(rgba32f, binding = 0) readonly uniform image2D u_imbuffer;
 layout(rgba8, binding = 1) writeonly uniform image2D u_out;
 layout(rg8, binding = 2) writeonly uniform image2D u_mask;
-uniform sampler2D u_color;          // dominant eye, lit sRGB (GL rows, bottom first)
 uniform int u_kernel_rows;          // Patcher kernel height h
 uniform int u_kernel_max;           // Patcher kernel width cap (ImBuffer pixels)
-uniform float u_edge_radius;        // conservative filter: triangle vertex distance (pixels); 0 = off
-uniform float u_edge_disparity;     // ... disparity step (pixels) that counts as a foreground edge
-uniform float u_disparity_scale;    // focal length (pixels) x baseline (metres): disparity = scale / depth
-
-ivec2 g_src_size;
-int g_w;  // ImBuffer width
-
-vec3 color_at(float sx, int y) {
-#if !LINEAR
-    return texelFetch(u_color, ivec2(clamp(int(round(sx)), 0, g_src_size.x - 1), y), 0).rgb;
-#else
-    float x0 = floor(sx);
-    float f = sx - x0;
-    ivec2 a = ivec2(clamp(int(x0), 0, g_src_size.x - 1), y);
-    ivec2 b = ivec2(clamp(int(x0) + 1, 0, g_src_size.x - 1), y);
-    vec3 ca = texelFetch(u_color, a, 0).rgb, cb = texelFetch(u_color, b, 0).rgb;
-    if (same_surface(source_depth(a), source_depth(b))) return mix(ca, cb, f);
-    return f < 0.5 ? ca : cb;
-#endif
-}
-
-// Source x (source pixel-centre units) of ImBuffer texel (j, y) holding record r.
-float source_x(int j, vec4 r) {
-    return ((float(j) + 0.5) / float(g_w) + r.x) * float(g_src_size.x) - 0.5;
-}
-
-bool near_edge(float sx, int y, float depth) {
-    if (u_edge_radius <= 0.0 || depth >= SKY_DEPTH) return false;
-    float nearest = SKY_DEPTH;
-    vec2 offs[3] = vec2[3](vec2(0.0, 1.0), vec2(-0.8660254, -0.5), vec2(0.8660254, -0.5));
-    for (int k = 0; k < 3; ++k) {
-        vec2 p = vec2(sx, float(y)) + offs[k] * u_edge_radius;
-        nearest = min(nearest, source_depth(ivec2(round(p))));
-    }
-    return (1.0 / nearest - 1.0 / depth) * u_disparity_scale > u_edge_disparity;
-}
+#include "yoro_patch.glsl"
 
 void main() {
     ivec2 size = imageSize(u_out);
@@ -84,36 +47,7 @@ void main() {
         holes[atomicAdd(hole_count, 1u)] = (uint(p.y) << 16) | uint(p.x);
         return;
     }
-    // Covered: sample the dominant eye where this pixel comes from.
-    int i0 = clamp(int(floor(q)), 0, g_w - 1), i1 = min(i0 + 1, g_w - 1);
-    vec4 r0 = imageLoad(u_imbuffer, ivec2(i0, y)), r1 = imageLoad(u_imbuffer, ivec2(i1, y));
-    float shift = r.x, depth = r.y;
-    float u = (float(p.x) + 0.5) / float(size.x);
-    if (r0.z == 0.0 && r1.z == 0.0 && same_surface(r0.y, r1.y)) {
-        float f = clamp(q - float(i0), 0.0, 1.0);
-        shift = mix(r0.x, r1.x, f);
-        depth = mix(r0.y, r1.y, f);
-    }
-#if COARSE
-    else {
-        // Coarse ImBuffer at a depth edge: keep the neighbour whose shift lands on its own surface.
-        vec4 other = (n == i0) ? r1 : r0;
-        float sx_n = (u + r.x) * float(g_src_size.x) - 0.5;
-        float sx_o = (u + other.x) * float(g_src_size.x) - 0.5;
-        if (other.z == 0.0 && !same_surface(source_depth(ivec2(round(sx_n), y)), r.y)
-                && same_surface(source_depth(ivec2(round(sx_o), y)), other.y)) {
-            shift = other.x;
-            depth = other.y;
-        }
-    }
-#endif
-    float sx = (u + shift) * float(g_src_size.x) - 0.5;
-    imageStore(u_out, p, vec4(color_at(sx, y), 1.0));
-#if EDGES
-    imageStore(u_mask, p, vec4(0.0, near_edge(sx, y, depth) ? 1.0 : 0.0, 0.0, 0.0));
-#else
-    imageStore(u_mask, p, vec4(0.0));
-#endif
+    patch_covered(p, size, q, r);
 #else
     // Disoccluded: r = (left edge, background depth, width, background-side neighbour).
     imageStore(u_mask, p, vec4(1.0, 0.0, 0.0, 0.0));

@@ -5,14 +5,36 @@
 // between them (sub-pixel source positions). Overlaps keep the nearest depth. Sweep 2 finds the target pixels
 // nobody wrote (disocclusions) and records in each its run's left edge, width, and which neighbour is the
 // background (the farther one), for the Patcher.
+//
+// FUSED (a full-resolution ImBuffer): the row pass of all three stages. Sweep 1 computes where each pixel lands
+// itself (Algorithm 1, `landing`) instead of reading it from the targets image, and sweep 2 also patches each
+// covered pixel (Algorithm 3, `patch_covered`) and lists each disocclusion's pixels for the Patcher's hole pass --
+// three fewer full-screen passes, each of which costs llvmpipe milliseconds at 960x540 whatever it does.
 layout(local_size_x = 32) in;
 #include "stereo_common.glsl"
 
-layout(rg32f, binding = 0) readonly uniform image2D u_targets;
 layout(rgba32f, binding = 1) uniform image2D u_imbuffer;
 uniform float u_max_stretch;   // widest target gap (ImBuffer pixels) bridged between two neighbours
+#if FUSED
+layout(rgba8, binding = 2) writeonly uniform image2D u_out;
+layout(rg8, binding = 3) writeonly uniform image2D u_mask;
+layout(std430, binding = 3) buffer Holes { uint hole_count; uint holes[]; };   // (y << 16) | x
+#define COARSE 0
+#include "yoro_patch.glsl"
+#else
+layout(rg32f, binding = 0) readonly uniform image2D u_targets;
+#endif
 
 const float UNSET = -1.0;
+
+// Where source pixel x of row y lands in the other eye, and its depth there.
+vec2 lands(int x, int y, ivec2 size) {
+#if FUSED
+    return landing(ivec2(x, y), size);
+#else
+    return imageLoad(u_targets, ivec2(x, y)).xy;
+#endif
+}
 
 void put(int t, int y, int w, float src_x, float depth) {
     if (t < 0 || t >= w) return;
@@ -37,10 +59,10 @@ void main() {
     // Sweep 1: scatter along the row. A pixel bridged to a neighbour covers the target pixels up to it by
     // interpolation; its own nearest target pixel is written only on a side no bridge covers.
     vec2 right = vec2(0.0);
+    vec2 c = lands(w - 1, y, size);
     bool bridged_right = false;
     for (int x = w - 1; x >= 0; --x) {
-        vec2 c = imageLoad(u_targets, ivec2(x, y)).xy;
-        vec2 left = x > 0 ? imageLoad(u_targets, ivec2(x - 1, y)).xy : c;
+        vec2 left = x > 0 ? lands(x - 1, y, size) : c;
         bool bridged_left = x > 0 && bridges(left, c);
         bridged_right = x < w - 1 && bridges(c, right);
         if (bridged_right) {
@@ -54,12 +76,24 @@ void main() {
         bool covered = (bridged_right && t0 >= c.x) || (bridged_left && t0 < c.x);
         if (abs(t0) < 1e8 && !covered) put(int(t0), y, w, float(x) + (t0 - c.x), c.y);
         right = c;
+        c = left;
     }
 
-    // Sweep 2: record each disocclusion run.
+    // Sweep 2: record each disocclusion run (FUSED: and patch each covered pixel, list the holes).
+#if FUSED
+    g_src_size = textureSize(u_color, 0);
+    g_w = w;
+#endif
     int t = 0;
     while (t < w) {
-        if (imageLoad(u_imbuffer, ivec2(t, y)).z == 0.0) { ++t; continue; }
+        vec4 r = imageLoad(u_imbuffer, ivec2(t, y));
+        if (r.z == 0.0) {
+#if FUSED
+            patch_covered(ivec2(t, y), size, float(t), r);
+#endif
+            ++t;
+            continue;
+        }
         int a = t;
         while (t < w && imageLoad(u_imbuffer, ivec2(t, y)).z != 0.0) ++t;
         int b = t - 1;
@@ -70,5 +104,9 @@ void main() {
             if (dr >= dl) { edge = float(b + 1); depth = dr; } else { edge = float(a - 1); depth = dl; }
         }
         for (int k = a; k <= b; ++k) imageStore(u_imbuffer, ivec2(k, y), vec4(float(a), depth, float(b - a + 1), edge));
+#if FUSED
+        uint first = atomicAdd(hole_count, uint(b - a + 1));
+        for (int k = a; k <= b; ++k) holes[first + uint(k - a)] = (uint(y) << 16) | uint(k);
+#endif
     }
 }

@@ -317,6 +317,30 @@ def test_courtyard_quality_and_mode2_no_worse(courtyard_renderer):
     assert bench.synthesize_ms > 0 and bench.render_ms > 0 and bench.rerender_ms > 0
 
 
+def test_fused_row_pass_makes_what_the_three_stages_make(ctx, courtyard_renderer):
+    """A full-resolution ImBuffer runs the fused row pass (Algorithms 1-3 in one row sweep, then the hole pass):
+    colour, masks and ImBuffer equal to running `reproject`, `scan` and `patch` one after another, with and without
+    the edge reject, on courtyard views with disocclusions and sky."""
+    from quadcast.render.traces import resolve_trace
+    trace = resolve_trace("builtin:walk")
+    s = StereoSynthesizer(ctx, W, H, ipd=0.063)
+    assert s.row_cs is not None and StereoSynthesizer(ctx, W, H, intermediate_scale=0.5).row_cs is None
+    for t in (2.0, 10.0):
+        camera = Camera.perspective(Pose(*trace.pose_at(t)), W, H)
+        gb = courtyard_renderer.gbuffer(camera, t)
+        for edges in (False, True):
+            fused = s.synthesize_gbuffer(gb, edge_mask=edges)
+            color, masks, imbuffer = fused.read_color().copy(), fused.read_masks(), s.read_imbuffer().copy()
+            assert masks[0].any() and (masks[1].sum() > masks[0].sum()) == edges
+            s.reproject(gb.position, camera)
+            s.scan()
+            staged = s.patch(gb.color, gb.position, camera, edges)
+            assert np.array_equal(staged.read_color(), color)
+            assert all(np.array_equal(a, b) for a, b in zip(staged.read_masks(), masks))
+            assert np.array_equal(s.read_imbuffer(), imbuffer)
+    s.release()
+
+
 def test_bad_inputs_are_named(ctx, renderer, left_camera, synth):
     gb = renderer.gbuffer(left_camera)
     with pytest.raises(ValueError, match="intermediate_scale"):
