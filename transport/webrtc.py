@@ -218,7 +218,7 @@ class WebRtcChannel(Channel):
 
     def _reencode(self, picture) -> bytes:
         from quadcast.codec.encoder import AtlasEncoder, VideoSettings
-        rgb = picture.to_ndarray(format="rgb24")
+        rgb = picture.reformat(format="rgb24", threads=1).to_ndarray()   # one thread: see codec/decoder.py
         h, w = rgb.shape[:2]
         if self._encoder is None or (self._encoder.width, self._encoder.height) != (w, h):
             if self._encoder is not None:
