@@ -34,11 +34,15 @@ class QuasarSettings:
     reference_angle_deg: float = 15.0    # ... or turned this much since the reference
     visible: QuadParams = field(default_factory=QuadParams)
     hidden: QuadParams = field(default_factory=lambda: QuadParams().relaxed())
-    # The wide view (out-of-frame content) at 75 deg and 0.625 of the resolution: the far field behind everything
-    # shows whatever lies beyond it, so its pixels go where a head turn within the latency looks. 120 deg at 0.5
-    # (QuadStream's) spread them 1.6x thinner: on the real-trace benchmark FLIP fell 1-4% on every row at the same
-    # or a lower rate (README, "Wide view").
+    # The wide view (out-of-frame content) at 0.625 of the resolution, 75 deg high: the far field behind everything
+    # shows whatever lies beyond it, so its pixels go where a head turn before the next frame looks. 120 deg at 0.5
+    # (QuadStream's) spread them 1.6x thinner: on the real-trace benchmark FLIP fell 1-3% on every row at the same
+    # or a lower rate (README, "Wide view"). When frames come farther apart (a live server on a slow machine), the
+    # view widens to cover what a head turning at wide_turn_dps sees move in over the mean interval between the
+    # last frames' display times, up to wide_fovy_max_deg; same pixels, so the atlas keeps its size.
     wide_fovy_deg: float = 75.0
+    wide_fovy_max_deg: float = 120.0
+    wide_turn_dps: float = 120.0
     wide_scale: float = 0.625
     hidden_scale: float = 0.5
     far_field: bool = True               # a cube map around the view cell behind everything (server/farfield.py)
@@ -71,6 +75,11 @@ class QuasarSettings:
                 raise ValueError(f"{name} must be in 1..23 or None, got {bits}")
         if not 0 <= self.reveal_expansion_px <= 4:
             raise ValueError(f"reveal_expansion_px must be in 0..4, got {self.reveal_expansion_px}")
+        if not 0 < self.wide_fovy_deg <= self.wide_fovy_max_deg < 180:
+            raise ValueError(f"need 0 < wide_fovy_deg <= wide_fovy_max_deg < 180, got {self.wide_fovy_deg} and "
+                             f"{self.wide_fovy_max_deg}")
+        if not self.wide_turn_dps >= 0:
+            raise ValueError(f"wide_turn_dps must be >= 0, got {self.wide_turn_dps}")
         if self.far_block < 2 or self.far_block & (self.far_block - 1):
             raise ValueError(f"far_block must be a power of 2 >= 2, got {self.far_block}")
 
@@ -114,6 +123,7 @@ class QuasarServer(MethodServer):
         self.reference_ids: np.ndarray | None = None
         self.frames_since_reference = 0
         self._reference_time = 0.0
+        self._display_times: list[float] = []   # the last frames' display times (the wide view's FOV)
         self._force_reference = True
         self.point: OperatingPoint | None = None      # the operating point applied last (None: the settings as given)
 
@@ -203,6 +213,19 @@ class QuasarServer(MethodServer):
                 or camera.pose.distance_to(ref.pose) > self.s.reference_distance
                 or camera.pose.angle_to_deg(ref.pose) > self.s.reference_angle_deg)
 
+    def wide_fovy_for(self, t: float) -> float:
+        """The wide view's vertical FOV for a frame displayed at `t`: the view's own plus, on each side, the turn
+        `wide_turn_dps` makes in the mean interval between the last nine frames' display times, within
+        [wide_fovy_deg, wide_fovy_max_deg]. Display times that go back (a new trace) start the count again."""
+        s, times = self.s, self._display_times
+        if times and t < times[-1]:
+            times.clear()
+        times.append(float(t))
+        del times[:-9]
+        interval = (times[-1] - times[0]) / (len(times) - 1) if len(times) > 1 else 0.0
+        fovy = s.fovy_deg + 2.0 * s.wide_turn_dps * interval
+        return float(np.clip(fovy, s.wide_fovy_deg, s.wide_fovy_max_deg))
+
     def encode(self, pose: Pose, t: float) -> FramePayload:
         s, ctx = self.s, self.ctx
         ms: dict[str, float] = {}
@@ -212,7 +235,7 @@ class QuasarServer(MethodServer):
 
         t0 = time.perf_counter()
         gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity)
-        wide_cam = wide_camera(camera, s.wide_fovy_deg, s.wide_scale)
+        wide_cam = wide_camera(camera, self.wide_fovy_for(t), s.wide_scale)
         # Lit only where geometry is: the wide view gets no sky quads (the far field shows the sky).
         wide_gb = self.renderer.gbuffer(wide_cam, t, target=self.wide_gbuffer, geometry_only=not s.hidden.sky)
         # The reference view is rendered again where the scene moved since it was last rendered (the animated

@@ -282,3 +282,24 @@ def test_reference_view_rerendered_where_the_scene_moves_equals_a_full_render(ct
         assert np.array_equal(server.reference_gbuffer.read_color(), truth), f"frame {k}"
     assert any(0 < w * h < 160 * 96 for _, _, w, h in regions), regions     # only part of the view re-rendered
     server.close()
+
+
+def test_wide_view_widens_when_frames_come_far_apart(courtyard_renderer):
+    """Frames 1/30 s apart get a wide view wide_fovy_deg high; 0.1 s apart, the view's FOV plus the turn
+    wide_turn_dps makes in that time on each side; 0.5 s apart, wide_fovy_max_deg. The payload's wide layer carries
+    that camera at the same size (the atlas does not change), and display times that go back start again."""
+    s = QuasarSettings(width=160, height=96, layers=2)
+    expected = {1 / 30: s.wide_fovy_deg, 0.1: s.fovy_deg + 2 * s.wide_turn_dps * 0.1, 0.5: s.wide_fovy_max_deg}
+    assert s.wide_fovy_deg < expected[0.1] < s.wide_fovy_max_deg
+    server = QuasarServer(courtyard_renderer, s)
+    pose = Pose.look_at([0, 1.6, 6], [0, 1.5, 0])
+    for step, fovy in expected.items():
+        for k in range(4):
+            frame = decode_quad_frame(server.encode(pose, 10.0 - step * 4 + step * k).geometry)
+        wide = next(layer for layer in frame.layers if layer.kind == LayerKind.WIDE)
+        camera = Camera.from_array(wide.camera, wide.width, wide.height)
+        assert camera.frustum.fovy_deg == pytest.approx(fovy, abs=1e-3), step
+        assert (wide.width, wide.height) == (100, 60)
+    with pytest.raises(ValueError, match="wide_fovy_max_deg"):
+        QuasarSettings(wide_fovy_deg=130.0)
+    server.close()
