@@ -184,9 +184,9 @@ class StereoSynthesizer:
         and camera: the three YORO stages, `reproject`, `scan` and `patch` (with a full-resolution ImBuffer fused
         into one row pass and the hole pass: the same images). `edge_mask=False` skips the conservative edge reject
         (the mask's g), which only mode 2 uses."""
-        self._check_inputs(color, depth, camera)
+        is_position = self._check_inputs(color, depth, camera)
         if self.row_cs is not None:
-            return self._synthesize_rows(color, depth, camera, edge_mask)
+            return self._synthesize_rows(color, depth, camera, edge_mask, is_position)
         self.reproject(depth, camera)
         self.scan()
         return self.patch(color, depth, camera, edge_mask)
@@ -207,11 +207,11 @@ class StereoSynthesizer:
                            u_disparity_scale=camera.focal_px[0] * self.ipd, **settings)
 
     def _synthesize_rows(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera,
-                         edge_mask: bool) -> StereoResult:
+                         edge_mask: bool, is_position: bool) -> StereoResult:
         """`synthesize` with a full-resolution ImBuffer: one row pass (yoro_scan.comp, FUSED) does what
         `reproject`, `scan` and the covered pixels of `patch` do, then the Patcher's hole pass fills the listed
-        disocclusions. The same images as the three stages."""
-        is_position = self._check_inputs(color, depth, camera)
+        disocclusions. The same images as the three stages. The inputs are checked (`is_position` is
+        `_check_inputs`'s answer)."""
         edges, uniforms = self._patch_uniforms(edge_mask, is_position, camera)
         row_cs = self.row_cs[edges]
         self._set_reprojection(row_cs, depth, camera, is_position)

@@ -213,10 +213,11 @@ class QuasarServer(MethodServer):
                 or camera.pose.distance_to(ref.pose) > self.s.reference_distance
                 or camera.pose.angle_to_deg(ref.pose) > self.s.reference_angle_deg)
 
-    def wide_fovy_for(self, t: float) -> float:
-        """The wide view's vertical FOV for a frame displayed at `t`: the view's own plus, on each side, the turn
-        `wide_turn_dps` makes in the mean interval between the last nine frames' display times, within
-        [wide_fovy_deg, wide_fovy_max_deg]. Display times that go back (a new trace) start the count again."""
+    def _wide_fovy(self, t: float) -> float:
+        """Record that the frame being made is displayed at `t`, and return its wide view's vertical FOV: the
+        view's own plus, on each side, the turn `wide_turn_dps` makes in the mean interval between the last nine
+        frames' display times, within [wide_fovy_deg, wide_fovy_max_deg]. Display times that go back (a new
+        trace) start the count again."""
         s, times = self.s, self._display_times
         if times and t < times[-1]:
             times.clear()
@@ -235,7 +236,7 @@ class QuasarServer(MethodServer):
 
         t0 = time.perf_counter()
         gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity)
-        wide_cam = wide_camera(camera, self.wide_fovy_for(t), s.wide_scale)
+        wide_cam = wide_camera(camera, self._wide_fovy(t), s.wide_scale)
         # Lit only where geometry is: the wide view gets no sky quads (the far field shows the sky).
         wide_gb = self.renderer.gbuffer(wide_cam, t, target=self.wide_gbuffer, geometry_only=not s.hidden.sky)
         # The reference view is rendered again where the scene moved since it was last rendered (the animated
