@@ -5,6 +5,7 @@
 // outside the frame with the closest edge pixel in that direction.
 // Alpha says what the pixel shows (client.method.PixelCoverage): 1 = the frame's content in this direction,
 // 0.5 = only the repeated edge pixel (outside the frame), 0 = nothing (the clear value).
+#include "sharp_texture.glsl"
 in vec2 v_uv;
 
 uniform sampler2D u_frame;  // decoded colour, bottom row first, linear filtering, clamp to edge
@@ -18,5 +19,5 @@ void main() {
     q.z = max(q.z, max(1e-6 * length(q.xy), 1e-30));
     vec2 uv = q.xy / q.z * 0.5 + 0.5;
     bool inside = in_front && all(greaterThanEqual(uv, vec2(0.0))) && all(lessThanEqual(uv, vec2(1.0)));
-    f_color = vec4(texture(u_frame, uv).rgb, inside ? 1.0 : 0.5);
+    f_color = vec4(sharp_texture(u_frame, uv).rgb, inside ? 1.0 : 0.5);
 }

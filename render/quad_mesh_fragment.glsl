@@ -3,6 +3,7 @@
 // The atlas is sampled inside the layer's own rect, half a texel in from its edges: a quad at the rect's border,
 // seen magnified or at a new angle, would otherwise filter in the next layer's pixels (a dark seam along the edge
 // of the reference view on the ground, for one).
+#include "sharp_texture.glsl"
 in vec3 v_uvw;
 in vec3 v_view_pos;
 uniform sampler2D u_atlas;
@@ -10,6 +11,6 @@ uniform vec4 u_uv_rect;   // the layer's atlas rect in uv, half a texel in: (u0,
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_depth;
 void main() {
-    f_color = vec4(texture(u_atlas, clamp(v_uvw.xy / v_uvw.z, u_uv_rect.xy, u_uv_rect.zw)).rgb, 1.0);
+    f_color = vec4(sharp_texture(u_atlas, clamp(v_uvw.xy / v_uvw.z, u_uv_rect.xy, u_uv_rect.zw)).rgb, 1.0);
     f_depth = -v_view_pos.z;
 }

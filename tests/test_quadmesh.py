@@ -120,3 +120,52 @@ def test_a_layer_samples_only_its_own_atlas_rect(ctx):
     assert drawn.mean() > 0.95
     assert image[drawn][:, 1].max() == 0, "green from outside the rect was filtered in"
     assert image[drawn][:, 0].min() == 255
+
+
+SHARP_PROBE = """#version 430
+layout(local_size_x = 64) in;
+#include "sharp_texture.glsl"
+uniform sampler2D u_tex;
+uniform int u_count;
+layout(std430, binding = 0) readonly buffer Where { vec2 where[]; };
+layout(std430, binding = 1) writeonly buffer Got { vec2 got[]; };   // (sharp, bilinear)
+void main() {
+    uint i = gl_GlobalInvocationID.x;
+    if (i >= uint(u_count)) return;
+    got[i] = vec2(sharp_texture(u_tex, where[i]).r, texture(u_tex, where[i]).r);
+}
+"""
+
+
+def test_sharp_texture_keeps_texels_and_ramps_over_the_middle_of_each_interval(ctx, tmp_path):
+    """Every client samples colour through render/sharp_texture.glsl: at a texel's centre it returns the texel;
+    between two texels the weight of the second rises linearly over the middle 1/1.5 of the interval (bilinear
+    filtering rises over all of it), so a quarter of the way across it gives 1/8 of the step, not 1/4."""
+    from quadcast.render.gl import compute
+
+    (tmp_path / "probe.comp").write_text(SHARP_PROBE)
+    probe = compute(ctx, tmp_path / "probe.comp")
+    texels = np.array([[0.0, 1.0, 0.25, 0.25]], np.float32)           # one row of four R32F texels
+    tex = ctx.texture((4, 1), 1, texels.tobytes(), dtype="f4")
+    tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+    tex.repeat_x = tex.repeat_y = False
+    centre = np.array([0.0, 0.125, 0.25, 0.375, 0.5, 0.75, 1.0, 1.5, 2.0, 2.5])  # texel-centre coordinates
+    where = np.stack([(centre + 0.5) / 4, np.full_like(centre, 0.5)], axis=1).astype(np.float32)
+    src, out = ctx.buffer(where.tobytes()), ctx.buffer(reserve=where.nbytes)
+    src.bind_to_storage_buffer(0)
+    out.bind_to_storage_buffer(1)
+    tex.use(0)
+    probe["u_tex"], probe["u_count"] = 0, len(where)
+    probe.run(1)
+    sharp, bilinear = np.frombuffer(out.read(), np.float32).reshape(-1, 2).T
+    row = texels[0].astype(np.float64)
+    i = np.floor(centre).astype(int)
+    frac = centre - i
+    a, b = row[i], row[np.minimum(i + 1, 3)]
+    np.testing.assert_allclose(bilinear, a + (b - a) * frac, atol=1e-2)   # the GPU's 8-bit filter weights
+    ramp = np.clip((frac - 0.5) * 1.5 + 0.5, 0.0, 1.0)
+    np.testing.assert_allclose(sharp, a + (b - a) * ramp, atol=1e-2)
+    assert sharp[1] < 0.1 and bilinear[1] > 0.1                         # 1/8 of the way: sharper than bilinear
+    np.testing.assert_array_equal(sharp[[0, 8]], row[[0, 2]])           # texel centres: the texels themselves
+    for b in (src, out, tex):
+        b.release()

@@ -81,3 +81,15 @@ def test_live_client_follows_the_trace_from_the_spawn_point(head_trace, courtyar
     assert client.duration == pytest.approx(2.5)
     with pytest.raises(ValueError, match="anchor"):
         LiveClient(ClientConfig("127.0.0.1", 1, trace=str(head_trace), anchor="1,2"), make_client)
+
+
+def test_bench_client_rows_keep_the_draw_apart_from_the_full_render(capsys):
+    """`bench client --json`: the client's stage times (its own draw among them) and the full render they are
+    judged against are separate figures, and the ratio is the one printed."""
+    rows = bench.bench_client(["builtin:courtyard"], [(160, 90)], frames=2, quiet=True)
+    (row,) = rows
+    assert set(row["ms"]) == set(bench.CLIENT_STAGES) and all(v > 0 for k, v in row["ms"].items() if k != "quad_update")
+    assert row["total_ms"] == pytest.approx(sum(row["ms"].values()))
+    assert row["ratio_to_render"] == pytest.approx(row["total_ms"] / row["render_ms"])
+    assert row["render_ms"] != row["ms"]["render"]
+    assert f"ratio {row['ratio_to_render']:.2f}" in capsys.readouterr().out
