@@ -2,8 +2,9 @@
 // Mesh reconstruction of one layer: a quad with depth offsets becomes 4 sub-quads = 16 vertices (view space of
 // its layer camera, atlas uv) and 24 indices; a flattened quad (a plane, no offsets) one quad = 4 vertices and 6
 // indices. One invocation per quad; where each quad's vertices go (its indices: 3/2 of that) is decided on the CPU.
-// Built twice, with FLATTENED 1 and 0: each dispatch takes one kind of quad (render/quadmesh.py puts the flattened
-// ones first), as llvmpipe would run both branches of an if for every quad of a mixed batch.
+// Built twice, with FLATTENED 1 and 0: each dispatch takes one kind of quad, as llvmpipe would run both branches of
+// an if for every quad of a mixed batch. The quads stay in their own order; `order` lists the flattened ones first,
+// then the others (render/quadmesh.py), and a dispatch takes its part of that list.
 layout(local_size_x = 64) in;
 #include "quad.glsl"
 
@@ -15,8 +16,9 @@ struct Quad {            // as uploaded by render/quadmesh.py
 layout(std430, binding = 0) readonly buffer Quads { Quad quads[]; };
 layout(std430, binding = 1) writeonly buffer Vertices { float vertices[]; };  // 5 floats each: xyz, uv
 layout(std430, binding = 2) writeonly buffer Indices { uint indices[]; };
+layout(std430, binding = 3) readonly buffer Order { uint order[]; };
 
-uniform uint u_first;         // this dispatch's quads: u_first .. u_count - 1
+uniform uint u_first;         // this dispatch's quads: order[u_first .. u_count - 1]
 uniform uint u_count;
 uniform vec4 u_atlas_rect;    // x, y, w, h of this layer's colour in the atlas (pixels, top-left origin)
 uniform vec2 u_atlas_size;
@@ -33,9 +35,9 @@ void quad_indices(uint k, uint b) {   // two triangles of the (sub-)quad whose c
 }
 
 void main() {
-    uint i = u_first + gl_GlobalInvocationID.x;
-    if (i >= u_count) return;
-    Quad q = quads[i];
+    uint k = u_first + gl_GlobalInvocationID.x;
+    if (k >= u_count) return;
+    Quad q = quads[order[k]];
     float size = float(1u << q.head.z);
     vec2 origin = vec2(q.head.xy);
     vec3 n = q.normal_depth.xyz;

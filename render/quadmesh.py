@@ -82,11 +82,12 @@ class _LayerBuffers:
         if quads <= self.quad_capacity and vertices <= self.vertex_capacity:
             return
         if self.quad_capacity:
-            for b in (self.vao, self.depth_vao, self.quad_buf, self.vertex_buf, self.index_buf):
+            for b in (self.vao, self.depth_vao, self.quad_buf, self.order_buf, self.vertex_buf, self.index_buf):
                 b.release()
         self.quad_capacity = max(quads, 2 * self.quad_capacity, 256)
         self.vertex_capacity = max(vertices, 2 * self.vertex_capacity, 256 * FLAT_VERTICES)
         self.quad_buf = ctx.buffer(reserve=self.quad_capacity * QUAD_FLOATS * 4)
+        self.order_buf = ctx.buffer(reserve=self.quad_capacity * 4)
         self.vertex_buf = ctx.buffer(reserve=self.vertex_capacity * 5 * 4)
         self.index_buf = ctx.buffer(reserve=self.vertex_capacity * 3 // 2 * 4)
         self.vao = ctx.vertex_array(prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")], self.index_buf)
@@ -190,11 +191,15 @@ class QuadMesh:
         n = len(rows)
         flat = (rows[:, 3].view(np.uint32) >> np.uint32(31)) != 0
         n_flat = int(flat.sum())
-        # Flattened quads first, each kind its own dispatch (their vertex places stay in head.w: same mesh).
-        buf.quad_buf.write(np.concatenate([rows[flat], rows[~flat]]))
+        # Each kind its own dispatch, through a list of the quads' places (flattened ones first): reordering the
+        # rows themselves copied 8 MB for a monastery reference frame (5.8 ms).
+        order = np.concatenate([np.flatnonzero(flat), np.flatnonzero(~flat)]).astype(np.uint32)
+        buf.quad_buf.write(rows)
+        buf.order_buf.write(order)
         buf.quad_buf.bind_to_storage_buffer(0)
         buf.vertex_buf.bind_to_storage_buffer(1)
         buf.index_buf.bind_to_storage_buffer(2)
+        buf.order_buf.bind_to_storage_buffer(3)
         f = layer.camera.frustum
         for is_flat, first, count in ((True, 0, n_flat), (False, n_flat, n)):
             if count > first:
