@@ -68,15 +68,7 @@ class VideoSettings:
         bitrate_kbps: target bitrate in kbit/s.  When set it takes precedence
             over ``crf``: the encoder runs in average-bitrate mode capped by a
             VBV of ``bitrate_kbps`` max rate and a one-second buffer.
-        preset: x264 speed preset (see :data:`X264_PRESETS`).  The default,
-            superfast, compresses 6-10% smaller than ultrafast at the same CRF
-            (CABAC, intra 4x4/8x8 partitions, sub-pixel motion search; High
-            profile), for a few ms more per 2040x1006 atlas.
-        deblock: x264's in-loop deblocking filter.  Off by default (as in
-            ultrafast): it smooths texture the client then resamples again,
-            and FLIP scores the blur (+1.9% on a monastery trace with it on).
-        adaptive_quant: x264's adaptive quantization (aq-mode 1).  Off by
-            default (as in ultrafast): it takes bits from textured blocks.
+        preset: x264 speed preset (see :data:`X264_PRESETS`).
         gop: maximum number of frames between IDR pictures; None means no
             periodic IDRs (only the first frame and forced keyframes are IDR).
         threads: encoder threads, 0 = let x264 choose.  Threads split each
@@ -87,9 +79,7 @@ class VideoSettings:
 
     crf: float | None = 23
     bitrate_kbps: int | None = None
-    preset: str = "superfast"
-    deblock: bool = False
-    adaptive_quant: bool = False
+    preset: str = "ultrafast"
     gop: int | None = None
     threads: int = 0
     fps: float = 60.0
@@ -141,7 +131,7 @@ class AtlasEncoder:
     Args:
         width: atlas width in pixels; positive and even.
         height: atlas height in pixels; positive and even.
-        settings: rate control / speed settings (defaults: CRF 23, superfast).
+        settings: rate control / speed settings (defaults: CRF 23, ultrafast).
 
     Use as a context manager or call :meth:`close` when done.
     """
@@ -179,8 +169,7 @@ class AtlasEncoder:
         codec.color_range = _AVCOL_RANGE_MPEG
 
         keyint = "infinite" if s.gop is None else str(s.gop)
-        x264_params = [f"keyint={keyint}", "scenecut=0", "bframes=0", "repeat-headers=1",
-                       f"aq-mode={1 if s.adaptive_quant else 0}"] + ([] if s.deblock else ["no-deblock=1"])
+        x264_params = [f"keyint={keyint}", "scenecut=0", "bframes=0", "repeat-headers=1"]
         options = {"preset": s.preset, "tune": "zerolatency", "forced-idr": "1"}
         if s.bitrate_kbps is not None:
             kbps = int(s.bitrate_kbps)

@@ -46,12 +46,11 @@ class MethodConfig:
     crf: float | None = None      # x264 CRF of the method's video; None: the method's own (DEFAULT_CRF)
 
 
-DEFAULT_CRF = {"quasar": 16.0}
+DEFAULT_CRF = {"quasar": 18.0}
 """Each method's video quality when none is asked for (x264 CRF; 23 for the others). QUASAR's atlas carries the
-colour of every layer it sends, and its error floor at small pose errors is the video's: CRF 18 bought the
-courtyard's real-trace runs 9% lower FLIP for 15% more Mbps with x264's ultrafast preset; since the encoder's
-superfast default (6-10% smaller at the same CRF) CRF 16 costs about what 18 did, for 1-3% lower FLIP (README,
-`quadcast bench quality`); the baselines keep x264's default."""
+colour of every layer it sends, and its error floor at small pose errors is the video's: CRF 18 buys the courtyard's
+real-trace runs 9% lower FLIP for 15% more Mbps, well inside a quarter of QuadStream's rate (README, `quadcast bench
+quality`); the baselines keep x264's default."""
 
 
 def method_crf(name: str, crf: float | None) -> float:

@@ -12,7 +12,6 @@ from tqdm import tqdm
 
 from quadcast.codec.encoder import VideoSettings
 from quadcast.protocol.frame import encode_frame_payload, residual_to_reference_bytes
-from quadcast.protocol.methods import DEFAULT_CRF
 from quadcast.render.camera import Pose
 from quadcast.render.renderer import DeferredRenderer
 from quadcast.render.scene import load_scene
@@ -23,7 +22,7 @@ __all__ = ["encode_trace"]
 
 
 def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames: int, viewcell: float,
-                 every: int, out: Path, layers: int = 4, crf: float = DEFAULT_CRF["quasar"], server_hz: float = 30.0,
+                 every: int, out: Path, layers: int = 4, crf: float = 18.0, server_hz: float = 30.0,
                  quiet: bool = False) -> dict:
     """Run QUASAR's server along a trace (poses at `server_hz`, no network); write every frame's payload, the
     H.264 stream and stats.json. Returns the stats."""

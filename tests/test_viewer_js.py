@@ -204,11 +204,11 @@ def test_codec_string_and_idr_detection_from_our_encoder(tmp_path):
         units += [enc.encode(img, keyframe=True).data, enc.encode(img, keyframe=False).data]
     out = run_js(tmp_path, {"op": "video", "units": [b64(u) for u in units]})
     assert [o["idr"] for o in out] == [contains_idr(u) for u in units] == [True, False, True, False]
-    # x264's superfast preset: High profile (profile_idc 100, constraint flags 0), the level by size
+    # x264's ultrafast preset: Constrained Baseline (profile_idc 66, constraint flags 0xC0), the level by size
     for unit, o in zip(units[::2], out[::2]):
         sps = unit[unit.index(b"\x00\x00\x01\x67") + 4:]
-        assert o["codec"] == f"avc1.6400{sps[2]:02X}" and sps[:2] == b"\x64\x00"
-    assert out[0]["codec"] == "avc1.640015"      # level 2.1 at 320x180
+        assert o["codec"] == f"avc1.42C0{sps[2]:02X}" and sps[:2] == b"\x42\xc0"
+    assert out[0]["codec"] == "avc1.42C015"      # level 2.1 at 320x180
     assert out[1]["codec"] is None
 
 

@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from quadcast.protocol.methods import DEFAULT_CRF
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.scene import Scene, SceneError, load_scene
 from quadcast.render.traces import Trace, resolve_trace, scene_tour
@@ -127,7 +126,7 @@ def _full_render_ms(renderer, pose: Pose, w: int, h: int, t: float) -> float:
 
 
 def bench_server(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10, every: int = 5,
-                 viewcell: float = 0.5, crf: float = DEFAULT_CRF["quasar"], quiet: bool = False) -> list[dict]:
+                 viewcell: float = 0.5, crf: float = 18.0, quiet: bool = False) -> list[dict]:
     """QUASAR's server along each scene's benchmark trace: mean ms per stage and per frame over the frames after
     the first (a warm-up), and, interleaved frame by frame on the same renderer, one full render of the same view:
     `ratio_to_render` is the server frame's wall time over that render's."""
@@ -171,7 +170,7 @@ def bench_server(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
     return rows
 
 
-def bench_client(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10, crf: float = DEFAULT_CRF["quasar"],
+def bench_client(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10, crf: float = 18.0,
                  quiet: bool = False) -> list[dict]:
     """Client stage times (mean ms over the frames after the first: receive a frame and render it once) and cache
     size at each size, per scene; and, interleaved frame by frame on the same GL context, one full render of the
@@ -215,7 +214,7 @@ def bench_client(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
     return rows
 
 
-def bench_stereo(scenes: list[str], size: tuple[int, int] = (960, 540), frames: int = 6, crf: float = DEFAULT_CRF["quasar"],
+def bench_stereo(scenes: list[str], size: tuple[int, int] = (960, 540), frames: int = 6, crf: float = 18.0,
                  quiet: bool = False) -> list[dict]:
     """YORO quality and cost ratio per scene and mode (see the module docstring)."""
     from quadcast.client.quasar import QuasarClient
