@@ -3,6 +3,7 @@
 // colour is sampled between texels almost everywhere; plain bilinear then averages neighbours at up to half and
 // half, a blur the ground truth does not have, while nearest sampling turns magnified texels into blocks. At a
 // texel's centre this returns the texel; SHARPNESS 1 is bilinear filtering, larger values tend to nearest.
+// `tex` must be sampled with linear filtering (the one fetch interpolates between the two texels).
 #ifndef SHARPNESS
 #define SHARPNESS 1.5
 #endif
