@@ -17,6 +17,7 @@ layout(std430, binding = 0) readonly buffer Quads { Quad quads[]; };
 layout(std430, binding = 1) writeonly buffer Vertices { float vertices[]; };  // 5 floats each: xyz, uv
 layout(std430, binding = 2) writeonly buffer Indices { uint indices[]; };
 layout(std430, binding = 3) readonly buffer Order { uint order[]; };
+layout(std430, binding = 4) writeonly buffer Planes { vec4 planes[]; };  // a flattened quad's plane, per 4 vertices
 
 uniform uint u_first;         // this dispatch's quads: order[u_first .. u_count - 1]
 uniform uint u_count;
@@ -49,6 +50,7 @@ void main() {
         emit(v0 + c, p, quad_corner_position(p, n, d, 0.0));
     }
     quad_indices(v0 / 2u * 3u, v0);
+    planes[v0 / 4u] = vec4(n, d);   // for the runs (quad_mesh_runs.comp)
 #else
     for (uint s = 0u; s < 4u; ++s) {
         for (uint c = 0u; c < 4u; ++c) {

@@ -8,6 +8,11 @@ last build (a client's cache that a residual frame left as it was) is not rebuil
 from the last build's by a `QuadSetEdit` (the cache after a residual frame) is edited in place: the appended quads
 get new vertices at the end, the freed ones empty triangles, until the dead vertices outnumber the live ones.
 The triangles drawn, and their order, are those of a build from scratch.
+
+A large layer's flattened quads are then drawn in runs (quad_mesh_runs.comp): quads of one size side by side on one
+surface as one rectangle, the others of the rectangle as empty triangles. Along depth edges the quadtree leaves
+rows and columns of 1- and 2-pixel quads, and llvmpipe pays per triangle: a monastery view's cache layer draws
+about a third of its triangles. After an edit only the blocks of rows it touched are redone.
 """
 from __future__ import annotations
 
@@ -26,6 +31,12 @@ from quadcast.render.renderer import CullFn, read_texture
 HERE = Path(__file__).resolve().parent
 QUAD_FLOATS = 24  # uvec4 head, vec4 normal+depth, 4 x vec4 offsets
 FLAT_VERTICES, FULL_VERTICES = 4, 16     # a flattened quad is one quad of the mesh, one with offsets four
+# Runs (quad_mesh_runs.comp): blocks of same-size flattened quads on one surface drawn as one rectangle, at most
+# MAX_RUN quads wide and MAX_STACK high; "one surface": planes within RUN_TOLERANCE (relative) on their shared
+# edge, normals within ~2.6 degrees.
+MAX_RUN, MAX_STACK, RUN_TOLERANCE, RUN_MIN_COS = 16, 8, 1e-3, 0.999
+MAX_RUN_GRID = 1 << 23   # grid cells (32 MiB): a larger layer is drawn quad by quad
+MIN_RUN_QUADS = 16384    # a smaller layer too: its triangles cost less than finding its runs (about 1 ms)
 
 
 @dataclass
@@ -72,6 +83,7 @@ class _LayerBuffers:
         self.quad_capacity = self.vertex_capacity = 0
         self.first = self.count = np.zeros(0, np.int64)
         self.end = self.dead = 0
+        self.merged = False   # whether the indices hold runs (QuadMesh._merge_runs)
 
     @property
     def indices(self) -> int:
@@ -82,7 +94,8 @@ class _LayerBuffers:
         if quads <= self.quad_capacity and vertices <= self.vertex_capacity:
             return
         if self.quad_capacity:
-            for b in (self.vao, self.depth_vao, self.quad_buf, self.order_buf, self.vertex_buf, self.index_buf):
+            for b in (self.vao, self.depth_vao, self.quad_buf, self.order_buf, self.vertex_buf, self.index_buf,
+                      self.plane_buf):
                 b.release()
         self.quad_capacity = max(quads, 2 * self.quad_capacity, 256)
         self.vertex_capacity = max(vertices, 2 * self.vertex_capacity, 256 * FLAT_VERTICES)
@@ -90,6 +103,7 @@ class _LayerBuffers:
         self.order_buf = ctx.buffer(reserve=self.quad_capacity * 4)
         self.vertex_buf = ctx.buffer(reserve=self.vertex_capacity * 5 * 4)
         self.index_buf = ctx.buffer(reserve=self.vertex_capacity * 3 // 2 * 4)
+        self.plane_buf = ctx.buffer(reserve=self.vertex_capacity // FLAT_VERTICES * 16)
         self.vao = ctx.vertex_array(prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")], self.index_buf)
         self.depth_vao = ctx.vertex_array(depth_prog, [(self.vertex_buf, "3f 8x", "in_position")], self.index_buf)
 
@@ -116,6 +130,9 @@ class QuadMesh:
         self.ctx = ctx
         self.builders = {flat: compute(ctx, HERE / "quad_mesh.comp", FLATTENED=int(flat)) for flat in (True, False)}
         self.eraser = compute(ctx, HERE / "quad_mesh_erase.comp")
+        self.runs = [compute(ctx, HERE / "quad_mesh_runs.comp", PASS=k) for k in range(5)]
+        self.min_run_quads = MIN_RUN_QUADS   # 0 merges every layer; None none
+        self._grid: moderngl.Buffer | None = None
         self.prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh.frag.glsl")
         self.depth_prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh_depth.frag.glsl")
         self._buffers: list[_LayerBuffers] = []
@@ -134,10 +151,15 @@ class QuadMesh:
             key = (layer.camera.to_array().tobytes(), tuple(layer.atlas_rect), tuple(atlas_size))
             if buf.quads is not layer.quads or buf.key != key:
                 edit = layer.edit
-                if not (edit is not None and buf.quads is edit.previous and buf.key == key
-                        and self._edit(layer, buf, atlas_size)):
+                merge = self.min_run_quads is not None and len(layer.quads) >= self.min_run_quads
+                edited = (edit is not None and buf.quads is edit.previous and buf.key == key
+                          and buf.merged == merge and self._edit(layer, buf, atlas_size))
+                if not edited:
                     self._generate(layer, buf, atlas_size)
-                buf.quads, buf.key = layer.quads, key
+                buf.quads, buf.key, buf.merged = layer.quads, key, merge
+                if merge:
+                    # after an edit only the rows it touched: the others' runs hold the same quads as before
+                    self._merge_runs(layer, buf, edit if edited else None)
             if buf.indices:
                 self.layers.append((layer, buf))
         for buf in self._buffers[len(layers):]:
@@ -200,6 +222,7 @@ class QuadMesh:
         buf.vertex_buf.bind_to_storage_buffer(1)
         buf.index_buf.bind_to_storage_buffer(2)
         buf.order_buf.bind_to_storage_buffer(3)
+        buf.plane_buf.bind_to_storage_buffer(4)
         f = layer.camera.frustum
         for is_flat, first, count in ((True, 0, n_flat), (False, n_flat, n)):
             if count > first:
@@ -209,6 +232,62 @@ class QuadMesh:
                              u_atlas_rect=tuple(float(v) for v in layer.atlas_rect),
                              u_atlas_size=(float(atlas_size[0]), float(atlas_size[1])))
                 builder.run((count - first + 63) // 64)
+
+    def _merge_runs(self, layer: MeshLayer, buf: _LayerBuffers, edit: QuadSetEdit | None = None) -> None:
+        """Rewrite the indices of the layer's flattened quads as runs (quad_mesh_runs.comp), so that they depend
+        only on the quads and their vertices; after `edit` (applied to indices that held runs) only those of the
+        quads in a block of MAX_STACK rows of one size where it appended or freed a quad."""
+        w, h = layer.camera.width, layer.camera.height
+        offsets, cells = [], 0
+        for s in range(12):
+            offsets.append(cells)
+            cells += ((w + (1 << s) - 1) >> s) * ((h + (1 << s) - 1) >> s)
+        if cells > MAX_RUN_GRID:
+            return
+        q = layer.quads
+        mask = np.left_shift(1, q.size_log2.astype(np.int32)) - 1
+        chosen = (buf.count == FLAT_VERTICES) & ((q.x & mask) == 0) & ((q.y & mask) == 0) & (q.x < w) & (q.y < h)
+        if edit is not None:
+            old_rows = [(edit.appended.y, edit.appended.size_log2)]
+            if edit.kept is not None:
+                freed, n = np.flatnonzero(~edit.kept), len(edit.previous)
+                prev, app = freed[freed < n], freed[freed >= n] - n
+                old_rows += [(edit.previous.y[prev], edit.previous.size_log2[prev]),
+                             (edit.appended.y[app], edit.appended.size_log2[app])]
+            def block(y, size_log2):
+                return (np.minimum(y, h - 1) >> size_log2.astype(np.int32)) // MAX_STACK
+
+            touched = np.zeros((h, 12), bool)
+            for y, size_log2 in old_rows:
+                touched[block(y, size_log2), size_log2] = True
+            chosen &= touched[block(q.y, q.size_log2), q.size_log2]
+        sel = np.flatnonzero(chosen)
+        if not len(sel):
+            return
+        places = np.empty((len(sel), 4), np.uint32)
+        places[:, 0], places[:, 1], places[:, 2], places[:, 3] = q.x[sel], q.y[sel], q.size_log2[sel], buf.first[sel]
+        if self._grid is None or self._grid.size < 4 * cells:
+            if self._grid is not None:
+                self._grid.release()
+            self._grid = self.ctx.buffer(reserve=4 * max(cells, 1 << 16))
+        self._grid.clear(size=4 * cells)
+        placed = self.ctx.buffer(places)
+        last = self.ctx.buffer(reserve=4 * len(places))
+        self.ctx.memory_barrier()
+        placed.bind_to_storage_buffer(0)
+        buf.plane_buf.bind_to_storage_buffer(1)
+        buf.index_buf.bind_to_storage_buffer(2)
+        self._grid.bind_to_storage_buffer(3)
+        last.bind_to_storage_buffer(4)
+        f = layer.camera.frustum
+        for shader in self.runs:
+            set_uniforms(shader, u_count=len(places), u_size=(w, h), u_level_offset=offsets, u_max_run=MAX_RUN,
+                         u_max_stack=MAX_STACK, u_tolerance=RUN_TOLERANCE, u_min_cos=RUN_MIN_COS, u_near=f.near,
+                         u_frustum=(f.left, f.right, f.bottom, f.top))
+            shader.run((len(places) + 63) // 64)
+            self.ctx.memory_barrier()
+        placed.release()
+        last.release()
 
     def draw(self, camera: Camera, atlas: moderngl.Texture | None) -> None:
         """Render the mesh from `camera` into the bound framebuffer (depth test on): colour from `atlas` and view

@@ -1,4 +1,5 @@
-"""The layered quad mesh: a cache layer edited in place after residual updates draws what a fresh build draws."""
+"""The layered quad mesh: a cache layer edited in place after residual updates draws what a fresh build draws;
+rows of quads on one surface are drawn as one rectangle each, the same image."""
 from __future__ import annotations
 
 import moderngl
@@ -22,6 +23,35 @@ def camera_facing_quads(rng, n, width, height, max_size_log2):
                    offsets=rng.normal(scale=0.05, size=(int((~flat).sum()), OFFSETS_PER_QUAD)))
 
 
+def plane_quads(camera: Camera, blocks: list[tuple[int, int, int]], normal, offset: float) -> QuadSet:
+    """Flattened quads (x, y, size_log2) on the plane dot(normal, X) = offset of `camera`'s view space."""
+    x, y, s = (np.array(c) for c in zip(*blocks))
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
+    f = camera.frustum
+    cx, cy = x + 0.5 * (1 << s), y + 0.5 * (1 << s)
+    ray = np.column_stack([f.left + (f.right - f.left) * cx / camera.width,
+                           f.top + (f.bottom - f.top) * cy / camera.height, np.full(len(x), -f.near)])
+    depth = offset * f.near / (ray @ n)
+    return QuadSet(x=x, y=y, size_log2=s, flattened=np.ones(len(x), bool), alpha=np.zeros(len(x), bool),
+                   normal=np.tile(n, (len(x), 1)), depth=depth, offsets=np.zeros((0, OFFSETS_PER_QUAD)))
+
+
+def planar_quads(rng, n, width, height, max_size_log2):
+    """n random aligned 4x4 blocks, each tiled by quads of one size (1, 2 or 4 pixels, at most 2**max_size_log2),
+    on one of two planes facing the camera (mostly by side of the image): rows of them form runs."""
+    camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), width, height)
+    planes = {True: [], False: []}
+    for _ in range(n):
+        bx, by = int(rng.integers(0, width // 4)) * 4, int(rng.integers(0, height // 4)) * 4
+        k = int(rng.integers(0, min(max_size_log2, 2) + 1))
+        first = (bx < width // 2) != (rng.random() < 0.1)
+        planes[first] += [(bx + i, by + j, k) for j in range(0, 4, 1 << k) for i in range(0, 4, 1 << k)]
+    sets = [plane_quads(camera, planes[first], normal, offset)
+            for first, normal, offset in ((True, (0.2, 0.1, 1.0), -4.0), (False, (-0.3, 0.0, 1.0), -3.0))
+            if planes[first]]
+    return QuadSet.concatenate(sets)
+
+
 def live_triangles(mesh: QuadMesh) -> list[np.ndarray]:
     """Per layer, the (T, 3, 5) vertex data (position, uv) of the triangles drawn, in draw order (empty ones
     dropped)."""
@@ -34,11 +64,15 @@ def live_triangles(mesh: QuadMesh) -> list[np.ndarray]:
     return out
 
 
-def test_cache_mesh_edited_after_updates_equals_a_fresh_build(ctx):
+@pytest.mark.parametrize("runs", [False, True], ids=["quad by quad", "runs"])
+def test_cache_mesh_edited_after_updates_equals_a_fresh_build(ctx, runs):
     """Residual updates append quads and free others; the edited mesh (new vertices at the end, freed quads'
     triangles emptied, rebuilt once dead vertices outnumber live ones) holds the same triangles in the same order
-    as a mesh built from scratch, and draws the same image."""
+    as a mesh built from scratch, and draws the same image. With runs (quads on two planes, every layer merged),
+    an edit redoes only the rows it touched, and the runs are those of a fresh build all the same."""
     rng = np.random.default_rng(7)
+    make_quads = planar_quads if runs else camera_facing_quads
+    min_run_quads = 0 if runs else None
     w, h = 64, 36
     camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
     eye = Camera.perspective(Pose.look_at([0.3, 0.1, 0.2], [0.0, 0.0, -4.0]), w, h)
@@ -46,8 +80,9 @@ def test_cache_mesh_edited_after_updates_equals_a_fresh_build(ctx):
     atlas = ctx.texture((w, h), 4, rng.integers(0, 256, (h, w, 4), dtype=np.uint8).tobytes())
     view = MeshView(ctx, w, h)
     cache = QuadCache(w, h)
-    cache.reset(camera_facing_quads(rng, 900, w, h, 2))
+    cache.reset(make_quads(rng, 900, w, h, 2))
     edited = QuadMesh(ctx)
+    edited.min_run_quads = min_run_quads
     builds = {"fresh": 0, "edit": 0}
     for name in builds:
         method = getattr(edited, "_generate" if name == "fresh" else "_edit")
@@ -60,19 +95,48 @@ def test_cache_mesh_edited_after_updates_equals_a_fresh_build(ctx):
     edited.build([MeshLayer(cache.quads, camera, rect, edit=cache.edit)], (w, h))
     freed = 0
     for step in range(24):
-        freed += cache.update(camera_facing_quads(rng, int(rng.integers(1, 40)), w, h, 3))
+        freed += cache.update(make_quads(rng, int(rng.integers(1, 40)), w, h, 3))
         edited.build([MeshLayer(cache.quads, camera, rect, edit=cache.edit)], (w, h))
         (_, buf), = edited.layers
         assert 2 * buf.dead <= buf.end, "dead vertices outnumber live ones"
         fresh = QuadMesh(ctx)
+        fresh.min_run_quads = min_run_quads
         fresh.build([MeshLayer(cache.quads, camera, rect)], (w, h))
         for a, b in zip(live_triangles(edited), live_triangles(fresh), strict=True):
             np.testing.assert_array_equal(a, b)
+            merged_away = int(buf.count.sum()) // 2 - len(a)   # a quad's triangles: half its vertices
+            assert merged_away > 100 if runs else merged_away == 0
         view.render(edited, eye, atlas)
         image_edited = view.read_color()
         view.render(fresh, eye, atlas)
         np.testing.assert_array_equal(image_edited, view.read_color())
     assert freed > 0 and builds["edit"] > 0
+
+
+def test_quads_on_one_surface_draw_as_rectangles(ctx):
+    """1-pixel quads on two planes (x < 40 and x >= 40) in a 64 x 8 layer are drawn as five rectangles: rows end
+    where the surface changes and at every 16th pixel, the 8 rows of each stack into one. The view from a nearby
+    pose has the same depths and colours as the quads drawn one by one."""
+    rng = np.random.default_rng(5)
+    w, h = 64, 8
+    camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
+    eye = Camera.perspective(Pose.look_at([0.25, 0.1, 0.3], [0.0, 0.0, -4.0]), 4 * w, 4 * h)
+    quads = QuadSet.concatenate([plane_quads(camera, [(x, y, 0) for y in range(h) for x in range(*xs)], n, d)
+                                 for xs, n, d in (((0, 40), (0.2, 0.1, 1.0), -4.0), ((40, 64), (-0.3, 0.0, 1.0), -3.0))])
+    atlas = ctx.texture((w, h), 4, rng.integers(0, 256, (h, w, 4), dtype=np.uint8).tobytes())
+    view = MeshView(ctx, 4 * w, 4 * h)
+    images = {}
+    for min_run_quads in (None, 0):
+        mesh = QuadMesh(ctx)
+        mesh.min_run_quads = min_run_quads
+        mesh.build([MeshLayer(quads, camera, (0, 0, w, h))], (w, h))
+        view.render(mesh, eye, atlas)
+        images[min_run_quads] = live_triangles(mesh)[0], (view.read_color(), view.read_depth())
+    (by_quad, (colour, depth)), (runs, (run_colour, run_depth)) = images[None], images[0]
+    assert len(by_quad) == 2 * w * h and len(runs) == 2 * 5
+    assert np.isfinite(depth).mean() > 0.7
+    np.testing.assert_allclose(run_depth, depth, rtol=1e-4)
+    assert (run_colour == colour).all(axis=-1).mean() > 0.995
 
 
 def test_depth_only_view_gives_the_colour_views_depths(ctx):
