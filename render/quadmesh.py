@@ -84,6 +84,8 @@ class _LayerBuffers:
         self.first = self.count = np.zeros(0, np.int64)
         self.end = self.dead = 0
         self.merged = False   # whether the indices hold runs (QuadMesh._merge_runs)
+        self.packed_indices: int | None = None   # the live triangles' indices, packed (QuadMesh._pack), if current
+        self.packed_capacity = 0
 
     @property
     def indices(self) -> int:
@@ -97,6 +99,7 @@ class _LayerBuffers:
             for b in (self.vao, self.depth_vao, self.quad_buf, self.order_buf, self.vertex_buf, self.index_buf,
                       self.plane_buf):
                 b.release()
+        self.release_packed()
         self.quad_capacity = max(quads, 2 * self.quad_capacity, 256)
         self.vertex_capacity = max(vertices, 2 * self.vertex_capacity, 256 * FLAT_VERTICES)
         self.quad_buf = ctx.buffer(reserve=self.quad_capacity * QUAD_FLOATS * 4)
@@ -106,6 +109,39 @@ class _LayerBuffers:
         self.plane_buf = ctx.buffer(reserve=self.vertex_capacity // FLAT_VERTICES * 16)
         self.vao = ctx.vertex_array(prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")], self.index_buf)
         self.depth_vao = ctx.vertex_array(depth_prog, [(self.vertex_buf, "3f 8x", "in_position")], self.index_buf)
+
+
+    def pack(self, ctx: moderngl.Context, prog, depth_prog) -> None:
+        """Copy the indices of the live triangles, in order, to the packed index buffer (drawn instead of the slots
+        until the next build or edit): the empty triangles of freed quads and of runs' other quads cost llvmpipe
+        about 30 ns each to cull."""
+        idx = np.frombuffer(self.index_buf.read(size=4 * self.indices), np.uint32).reshape(-1, 3)
+        live = idx[(idx[:, 0] != idx[:, 1]) | (idx[:, 1] != idx[:, 2])]
+        if live.size > self.packed_capacity:
+            self.release_packed()
+            self.packed_capacity = max(live.size, 3 * 1024)
+            self.packed_buf = ctx.buffer(reserve=4 * self.packed_capacity)
+            self.packed_vao = ctx.vertex_array(prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")],
+                                               self.packed_buf)
+            self.packed_depth_vao = ctx.vertex_array(depth_prog, [(self.vertex_buf, "3f 8x", "in_position")],
+                                                     self.packed_buf)
+        if live.size:
+            self.packed_buf.write(live)
+        self.packed_indices = live.size
+
+    def release_packed(self) -> None:
+        if self.packed_capacity:
+            for b in (self.packed_vao, self.packed_depth_vao, self.packed_buf):
+                b.release()
+        self.packed_capacity, self.packed_indices = 0, None
+
+    def draw(self, with_colour: bool) -> None:
+        if self.packed_indices is not None:
+            vao, count = (self.packed_vao if with_colour else self.packed_depth_vao), self.packed_indices
+        else:
+            vao, count = (self.vao if with_colour else self.depth_vao), self.indices
+        if count:
+            vao.render(moderngl.TRIANGLES, vertices=count)
 
 
 def uv_rect(rect: tuple[int, int, int, int], atlas_size: tuple[int, int]) -> tuple[float, float, float, float]:
@@ -156,10 +192,15 @@ class QuadMesh:
                           and buf.merged == merge and self._edit(layer, buf, atlas_size))
                 if not edited:
                     self._generate(layer, buf, atlas_size)
-                buf.quads, buf.key, buf.merged = layer.quads, key, merge
+                buf.quads, buf.key, buf.merged, buf.packed_indices = layer.quads, key, merge, None
                 if merge:
                     # after an edit only the rows it touched: the others' runs hold the same quads as before
                     self._merge_runs(layer, buf, edit if edited else None)
+                    if not edited and buf.indices:
+                        # packed after a build from scratch (a reference frame), where it pays: a cache that
+                        # changes with every frame (an animated scene) would pack every frame for little gain
+                        self.ctx.memory_barrier()
+                        buf.pack(self.ctx, self.prog, self.depth_prog)
             if buf.indices:
                 self.layers.append((layer, buf))
         for buf in self._buffers[len(layers):]:
@@ -303,7 +344,7 @@ class QuadMesh:
                 set_uniforms(prog, u_uv_rect=uv_rect(layer.atlas_rect, atlas.size))
             set_uniforms(prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()),
                          u_depth_scale=float(layer.depth_scale))
-            (buf.vao if atlas is not None else buf.depth_vao).render(moderngl.TRIANGLES, vertices=buf.indices)
+            buf.draw(atlas is not None)
 
 
 class MeshView:

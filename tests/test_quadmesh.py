@@ -116,7 +116,8 @@ def test_cache_mesh_edited_after_updates_equals_a_fresh_build(ctx, runs):
 def test_quads_on_one_surface_draw_as_rectangles(ctx):
     """1-pixel quads on two planes (x < 40 and x >= 40) in a 64 x 8 layer are drawn as five rectangles: rows end
     where the surface changes and at every 16th pixel, the 8 rows of each stack into one. The view from a nearby
-    pose has the same depths and colours as the quads drawn one by one."""
+    pose has the same depths and colours as the quads drawn one by one (the merged layer drawn from its packed
+    indices)."""
     rng = np.random.default_rng(5)
     w, h = 64, 8
     camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
@@ -132,6 +133,8 @@ def test_quads_on_one_surface_draw_as_rectangles(ctx):
         mesh.build([MeshLayer(quads, camera, (0, 0, w, h))], (w, h))
         view.render(mesh, eye, atlas)
         images[min_run_quads] = live_triangles(mesh)[0], (view.read_color(), view.read_depth())
+        (_, buf), = mesh.layers   # built from scratch, with runs: drawn from the live triangles' indices, packed
+        assert buf.packed_indices == (None if min_run_quads is None else 3 * len(images[min_run_quads][0]))
     (by_quad, (colour, depth)), (runs, (run_colour, run_depth)) = images[None], images[0]
     assert len(by_quad) == 2 * w * h and len(runs) == 2 * 5
     assert np.isfinite(depth).mean() > 0.7
