@@ -46,6 +46,10 @@ from quadcast.render.renderer import CullFn, GBuffer, read_texture
 
 HERE = Path(__file__).resolve().parent
 T = TypeVar("T")
+# An ImBuffer texel no source pixel has written (yoro_scan.comp): (0, SKY_DEPTH of render/camera.glsl, UNSET, -1).
+# The row pass starts from it; the buffer is cleared to it, a fill, where a loop of image stores in the row pass
+# itself (eight rows apart, one per SIMD lane) cost llvmpipe ~7 ms at 960x540.
+UNSET_TEXEL = (0.0, 1e30, -1.0, -1.0)
 
 DrawFn = Callable[[Camera, CullFn], moderngl.Texture]
 """draw_fn(camera, cull) renders `camera`'s view with `cull` as the draw's cull step (`CullFn`: the shared draw
@@ -144,6 +148,8 @@ class StereoSynthesizer:
         self.color = ctx.texture((w, h), 4, dtype="f1")
         self.mask = ctx.texture((w, h), 2, dtype="f1")
         self.merged = ctx.texture((w, h), 4, dtype="f1")        # mode 2 composite
+        self._imbuffer_fbo = ctx.framebuffer([self.imbuffer])   # to clear it (UNSET_TEXEL)
+        self._mask_fbo = ctx.framebuffer([self.mask])            # cleared to 0: the patch writes only its 1s
         self.holes = ctx.buffer(reserve=4 * (1 + w * h))        # the Patcher's hole list: count, then pixels
         self.hole_groups = ctx.buffer(reserve=12)               # its indirect dispatch
         self._cull_fbos: dict[int, moderngl.Framebuffer] = {}   # per depth texture drawn into (mode 2)
@@ -222,6 +228,8 @@ class StereoSynthesizer:
         self.mask.bind_to_image(3, read=False, write=True)
         self.holes.write(b"\0\0\0\0")
         self.holes.bind_to_storage_buffer(3)
+        self._clear_imbuffer()
+        self._clear_mask()
         row_cs.run((self.height + 31) // 32)
         self.ctx.memory_barrier()
         return self._fill_holes(camera, uniforms)
@@ -241,6 +249,14 @@ class StereoSynthesizer:
         self._last = StereoResult(self.color, self.mask, self.other_eye(camera))
         return self._last
 
+    def _clear_imbuffer(self) -> None:
+        self._imbuffer_fbo.clear(*UNSET_TEXEL)
+        self.ctx.memory_barrier()
+
+    def _clear_mask(self) -> None:
+        self._mask_fbo.clear(0.0, 0.0, 0.0, 0.0)
+        self.ctx.memory_barrier()
+
     def reproject(self, depth: moderngl.Texture, camera: Camera) -> None:
         """Algorithm 1 into `targets` (RG32F, ImBuffer size): where each pixel lands in the other eye (x in
         ImBuffer pixel-centre units) and its depth there."""
@@ -254,6 +270,7 @@ class StereoSynthesizer:
         """Algorithm 2, `targets` -> `imbuffer` (RGBA32F): per texel (source u - target u, depth, 0, 0) where
         covered, (left edge x, background depth, width, background-side neighbour x or -1) in a disocclusion."""
         set_uniforms(self.scan_cs, **self.settings)
+        self._clear_imbuffer()
         self.targets.bind_to_image(0, read=True, write=False)
         self.imbuffer.bind_to_image(1, read=True, write=True)
         self.scan_cs.run((self.height + 31) // 32)
@@ -274,6 +291,7 @@ class StereoSynthesizer:
         self.mask.bind_to_image(2, read=False, write=True)
         self.holes.write(b"\0\0\0\0")
         self.holes.bind_to_storage_buffer(3)
+        self._clear_mask()
         patch_cs.run((self.width + 7) // 8, (self.height + 7) // 8)
         self.ctx.memory_barrier()
         return self._fill_holes(camera, uniforms)
@@ -338,8 +356,8 @@ class StereoSynthesizer:
         return StereoResult(self.merged, result.mask, result.camera)
 
     def release(self) -> None:
-        for obj in (self.fullscreen, self.targets, self.imbuffer, self.color, self.mask, self.merged, self.holes,
-                    self.hole_groups, *self._cull_fbos.values()):
+        for obj in (self.fullscreen, self._imbuffer_fbo, self._mask_fbo, self.targets, self.imbuffer, self.color, self.mask,
+                    self.merged, self.holes, self.hole_groups, *self._cull_fbos.values()):
             obj.release()
         self._cull_fbos.clear()
 

@@ -72,9 +72,7 @@ void patch_covered(ivec2 p, ivec2 size, float q, vec4 r) {
 #endif
     float sx = (u + shift) * float(g_src_size.x) - 0.5;
     imageStore(u_out, p, vec4(color_at(sx, y), 1.0));
-#if EDGES
-    imageStore(u_mask, p, vec4(0.0, near_edge(sx, y, depth) ? 1.0 : 0.0, 0.0, 0.0));
-#else
-    imageStore(u_mask, p, vec4(0.0));
+#if EDGES   // the mask was cleared to 0 (client/stereo.py): only a rejected pixel's g is written
+    if (near_edge(sx, y, depth)) imageStore(u_mask, p, vec4(0.0, 1.0, 0.0, 0.0));
 #endif
 }

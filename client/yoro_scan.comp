@@ -54,7 +54,7 @@ void main() {
     ivec2 size = imageSize(u_imbuffer);
     if (y >= size.y) return;
     int w = size.x;
-    for (int t = 0; t < w; ++t) imageStore(u_imbuffer, ivec2(t, y), vec4(0.0, SKY_DEPTH, UNSET, -1.0));
+    // The row starts unset: (0, SKY_DEPTH, UNSET, -1) everywhere, cleared by the caller (client/stereo.py).
 
     // Sweep 1: scatter along the row. A pixel bridged to a neighbour covers the target pixels up to it by
     // interpolation; its own nearest target pixel is written only on a side no bridge covers.
