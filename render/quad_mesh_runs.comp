@@ -5,8 +5,8 @@
 // quads; drawn one by one they cost llvmpipe most of a frame's triangle setup.
 // A run is a row of flattened quads, each continuing the last; runs of the same extent stacked in a column, each
 // continuing the one above, make one rectangle. "Continues": the two quads' planes (the builder's) meet the ray
-// through the middle of their shared edge within u_tolerance of its length, their normals within
-// acos(u_min_cos). Rows break at every u_max_run-th place of their size's grid, columns at every u_max_stack-th,
+// through the middle of their shared edge at distances within u_tolerance of each other (relative), their normals
+// within acos(u_min_cos). Rows break at every u_max_run-th place of their size's grid, columns at every u_max_stack-th,
 // so a rectangle never leaves its block of u_max_run x u_max_stack places. Five passes over the layer's flattened
 // quads, their places uploaded by the CPU:
 //   PASS 0 puts each quad in a grid of its size's aligned places (a later quad wins a place, as in the cache);
