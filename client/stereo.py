@@ -228,8 +228,8 @@ class StereoSynthesizer:
         self.mask.bind_to_image(3, read=False, write=True)
         self.holes.write(b"\0\0\0\0")
         self.holes.bind_to_storage_buffer(3)
-        self._clear_imbuffer()
-        self._clear_mask()
+        self._clear(self._imbuffer_fbo, UNSET_TEXEL)
+        self._clear(self._mask_fbo, (0.0, 0.0, 0.0, 0.0))
         row_cs.run((self.height + 31) // 32)
         self.ctx.memory_barrier()
         return self._fill_holes(camera, uniforms)
@@ -249,12 +249,9 @@ class StereoSynthesizer:
         self._last = StereoResult(self.color, self.mask, self.other_eye(camera))
         return self._last
 
-    def _clear_imbuffer(self) -> None:
-        self._imbuffer_fbo.clear(*UNSET_TEXEL)
-        self.ctx.memory_barrier()
-
-    def _clear_mask(self) -> None:
-        self._mask_fbo.clear(0.0, 0.0, 0.0, 0.0)
+    def _clear(self, target: moderngl.Framebuffer, rgba: tuple[float, float, float, float]) -> None:
+        """Fill a whole image the passes read (a clear, where image stores in a pass cost llvmpipe far more)."""
+        target.clear(*rgba)
         self.ctx.memory_barrier()
 
     def reproject(self, depth: moderngl.Texture, camera: Camera) -> None:
@@ -270,7 +267,7 @@ class StereoSynthesizer:
         """Algorithm 2, `targets` -> `imbuffer` (RGBA32F): per texel (source u - target u, depth, 0, 0) where
         covered, (left edge x, background depth, width, background-side neighbour x or -1) in a disocclusion."""
         set_uniforms(self.scan_cs, **self.settings)
-        self._clear_imbuffer()
+        self._clear(self._imbuffer_fbo, UNSET_TEXEL)
         self.targets.bind_to_image(0, read=True, write=False)
         self.imbuffer.bind_to_image(1, read=True, write=True)
         self.scan_cs.run((self.height + 31) // 32)
@@ -291,7 +288,7 @@ class StereoSynthesizer:
         self.mask.bind_to_image(2, read=False, write=True)
         self.holes.write(b"\0\0\0\0")
         self.holes.bind_to_storage_buffer(3)
-        self._clear_mask()
+        self._clear(self._mask_fbo, (0.0, 0.0, 0.0, 0.0))
         patch_cs.run((self.width + 7) // 8, (self.height + 7) // 8)
         self.ctx.memory_barrier()
         return self._fill_holes(camera, uniforms)
@@ -356,8 +353,8 @@ class StereoSynthesizer:
         return StereoResult(self.merged, result.mask, result.camera)
 
     def release(self) -> None:
-        for obj in (self.fullscreen, self._imbuffer_fbo, self._mask_fbo, self.targets, self.imbuffer, self.color, self.mask,
-                    self.merged, self.holes, self.hole_groups, *self._cull_fbos.values()):
+        for obj in (self.fullscreen, self._imbuffer_fbo, self._mask_fbo, self.targets, self.imbuffer, self.color,
+                    self.mask, self.merged, self.holes, self.hole_groups, *self._cull_fbos.values()):
             obj.release()
         self._cull_fbos.clear()
 

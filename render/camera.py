@@ -188,6 +188,16 @@ class Camera:
     def projection_matrix(self) -> np.ndarray:
         return self.frustum.projection_matrix()
 
+    def image_rays(self, px, py) -> np.ndarray:
+        """Unit view-space rays through image points (pixels from the top-left corner), as render/quad.glsl's
+        ray_dir: (l + (r - l) x / w, t + (b - t) y / h, -near), normalised; shape (..., 3)."""
+        f = self.frustum
+        px, py = np.asarray(px, np.float64), np.asarray(py, np.float64)
+        r = np.stack([f.left + (f.right - f.left) * px / self.width,
+                      f.top + (f.bottom - f.top) * py / self.height,
+                      np.full(np.broadcast(px, py).shape, -f.near)], axis=-1)
+        return r / np.linalg.norm(r, axis=-1, keepdims=True)
+
     def view_projection(self) -> np.ndarray:
         return self.projection_matrix() @ self.view_matrix()
 

@@ -12,7 +12,7 @@ The triangles drawn, and their order, are those of a build from scratch.
 A large layer's flattened quads are then drawn in runs (quad_mesh_runs.comp): quads of one size side by side on one
 surface as one rectangle, the others of the rectangle as empty triangles. Along depth edges the quadtree leaves
 rows and columns of 1- and 2-pixel quads, and llvmpipe pays per triangle: a monastery view's cache layer draws
-about a third of its triangles. After an edit only the blocks of rows it touched are redone.
+40% of its triangles. After an edit only the blocks of rows it touched are redone.
 """
 from __future__ import annotations
 
@@ -84,7 +84,7 @@ class _LayerBuffers:
         self.first = self.count = np.zeros(0, np.int64)
         self.end = self.dead = 0
         self.merged = False   # whether the indices hold runs (QuadMesh._merge_runs)
-        self.packed_indices: int | None = None   # the live triangles' indices, packed (QuadMesh._pack), if current
+        self.packed_indices: int | None = None   # how many indices `pack` packed, while they are current
         self.packed_capacity = 0
 
     @property
@@ -109,7 +109,6 @@ class _LayerBuffers:
         self.plane_buf = ctx.buffer(reserve=self.vertex_capacity // FLAT_VERTICES * 16)
         self.vao = ctx.vertex_array(prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")], self.index_buf)
         self.depth_vao = ctx.vertex_array(depth_prog, [(self.vertex_buf, "3f 8x", "in_position")], self.index_buf)
-
 
     def pack(self, ctx: moderngl.Context, prog, depth_prog) -> None:
         """Copy the indices of the live triangles, in order, to the packed index buffer (drawn instead of the slots
@@ -168,7 +167,7 @@ class QuadMesh:
         self.eraser = compute(ctx, HERE / "quad_mesh_erase.comp")
         self.runs = [compute(ctx, HERE / "quad_mesh_runs.comp", PASS=k) for k in range(5)]
         self.min_run_quads = MIN_RUN_QUADS   # 0 merges every layer; None none
-        self._grid: moderngl.Buffer | None = None
+        self._scratch_buffers: dict[str, moderngl.Buffer] = {}   # the runs' grid and lists (_scratch)
         self.prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh.frag.glsl")
         self.depth_prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh_depth.frag.glsl")
         self._buffers: list[_LayerBuffers] = []
@@ -307,18 +306,15 @@ class QuadMesh:
             return
         places = np.empty((len(sel), 4), np.uint32)
         places[:, 0], places[:, 1], places[:, 2], places[:, 3] = q.x[sel], q.y[sel], q.size_log2[sel], buf.first[sel]
-        if self._grid is None or self._grid.size < 4 * cells:
-            if self._grid is not None:
-                self._grid.release()
-            self._grid = self.ctx.buffer(reserve=4 * max(cells, 1 << 16))
-        self._grid.clear(size=4 * cells)
-        placed = self.ctx.buffer(places)
-        last = self.ctx.buffer(reserve=4 * len(places))
+        grid, placed, last = (self._scratch(k, n) for k, n in (("grid", 4 * cells), ("places", places.nbytes),
+                                                                ("last", 4 * len(places))))
+        grid.clear(size=4 * cells)
+        placed.write(places)
         self.ctx.memory_barrier()
         placed.bind_to_storage_buffer(0)
         buf.plane_buf.bind_to_storage_buffer(1)
         buf.index_buf.bind_to_storage_buffer(2)
-        self._grid.bind_to_storage_buffer(3)
+        grid.bind_to_storage_buffer(3)
         last.bind_to_storage_buffer(4)
         f = layer.camera.frustum
         for shader in self.runs:
@@ -327,8 +323,18 @@ class QuadMesh:
                          u_frustum=(f.left, f.right, f.bottom, f.top))
             shader.run((len(places) + 63) // 64)
             self.ctx.memory_barrier()
-        placed.release()
-        last.release()
+
+    def _scratch(self, name: str, nbytes: int) -> moderngl.Buffer:
+        """The runs' buffer `name`, at least `nbytes` long: kept between builds, grown (doubling) when short."""
+        buffer = self._scratch_buffers.get(name)
+        if buffer is not None and buffer.size >= nbytes:
+            return buffer
+        size = max(nbytes, 1 << 16)
+        if buffer is not None:
+            size = max(size, 2 * buffer.size)
+            buffer.release()
+        buffer = self._scratch_buffers[name] = self.ctx.buffer(reserve=size)
+        return buffer
 
     def draw(self, camera: Camera, atlas: moderngl.Texture | None) -> None:
         """Render the mesh from `camera` into the bound framebuffer (depth test on): colour from `atlas` and view

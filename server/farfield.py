@@ -41,16 +41,6 @@ def face_cameras(position, size: int, near: float, far: float) -> list[Camera]:
             for d, up in FACE_DIRECTIONS]
 
 
-def _rays(camera: Camera, px: np.ndarray, py: np.ndarray) -> np.ndarray:
-    """Unit view-space rays through image points (pixels from the top-left corner), as render/quad.glsl's
-    ray_dir: (l + (r - l) x / w, t + (b - t) y / h, -near), normalised."""
-    f = camera.frustum
-    r = np.stack([f.left + (f.right - f.left) * px / camera.width,
-                  f.top + (f.bottom - f.top) * py / camera.height,
-                  np.full(np.broadcast(px, py).shape, -f.near)], axis=-1)
-    return r / np.linalg.norm(r, axis=-1, keepdims=True)
-
-
 def range_grid_quads(camera: Camera, depth: np.ndarray, block: int, max_depth: float) -> QuadSet:
     """One continuous surface over a face: `block`-pixel quads whose corners lie, along their rays, at the
     farthest view depth (at most `max_depth`; sky counts as `max_depth`) within a block of each grid corner;
@@ -73,7 +63,7 @@ def range_grid_quads(camera: Camera, depth: np.ndarray, block: int, max_depth: f
     half = block / 2
     # The plane of each quad faces the camera through the quad's centre, at the centre's lattice depth.
     centre_z = fine[2 * jy + 1, 2 * ix + 1]
-    centre_ray = _rays(camera, (ix + 0.5) * block, (jy + 0.5) * block)
+    centre_ray = camera.image_rays((ix + 0.5) * block, (jy + 0.5) * block)
     normal = unpack_normals(*pack_normals(-centre_ray)).astype(np.float64)   # as the client will see it
     centre_point = centre_ray * (centre_z / -centre_ray[:, 2])[:, None]
     d = np.einsum("ij,ij->i", normal, centre_point)
@@ -81,7 +71,7 @@ def range_grid_quads(camera: Camera, depth: np.ndarray, block: int, max_depth: f
     for s in range(4):                       # sub-quad s (0 TL, 1 TR, 2 BL, 3 BR), corner c (same order)
         for c in range(4):
             a, b = (s & 1) + (c & 1), (s >> 1) + (c >> 1)
-            r = _rays(camera, ix * block + a * half, jy * block + b * half)
+            r = camera.image_rays(ix * block + a * half, jy * block + b * half)
             t_surface = fine[2 * jy + b, 2 * ix + a] / -r[:, 2]
             t_plane = d / np.minimum(np.einsum("ij,ij->i", normal, r), -1e-3)
             offsets[:, s, c] = t_surface - t_plane

@@ -27,11 +27,8 @@ def plane_quads(camera: Camera, blocks: list[tuple[int, int, int]], normal, offs
     """Flattened quads (x, y, size_log2) on the plane dot(normal, X) = offset of `camera`'s view space."""
     x, y, s = (np.array(c) for c in zip(*blocks))
     n = np.asarray(normal, float) / np.linalg.norm(normal)
-    f = camera.frustum
-    cx, cy = x + 0.5 * (1 << s), y + 0.5 * (1 << s)
-    ray = np.column_stack([f.left + (f.right - f.left) * cx / camera.width,
-                           f.top + (f.bottom - f.top) * cy / camera.height, np.full(len(x), -f.near)])
-    depth = offset * f.near / (ray @ n)
+    ray = camera.image_rays(x + 0.5 * (1 << s), y + 0.5 * (1 << s))
+    depth = -ray[:, 2] * offset / (ray @ n)      # view depth where the centre ray meets the plane
     return QuadSet(x=x, y=y, size_log2=s, flattened=np.ones(len(x), bool), alpha=np.zeros(len(x), bool),
                    normal=np.tile(n, (len(x), 1)), depth=depth, offsets=np.zeros((0, OFFSETS_PER_QUAD)))
 
@@ -122,8 +119,9 @@ def test_quads_on_one_surface_draw_as_rectangles(ctx):
     w, h = 64, 8
     camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
     eye = Camera.perspective(Pose.look_at([0.25, 0.1, 0.3], [0.0, 0.0, -4.0]), 4 * w, 4 * h)
+    planes = (((0, 40), (0.2, 0.1, 1.0), -4.0), ((40, 64), (-0.3, 0.0, 1.0), -3.0))
     quads = QuadSet.concatenate([plane_quads(camera, [(x, y, 0) for y in range(h) for x in range(*xs)], n, d)
-                                 for xs, n, d in (((0, 40), (0.2, 0.1, 1.0), -4.0), ((40, 64), (-0.3, 0.0, 1.0), -3.0))])
+                                 for xs, n, d in planes])
     atlas = ctx.texture((w, h), 4, rng.integers(0, 256, (h, w, 4), dtype=np.uint8).tobytes())
     view = MeshView(ctx, 4 * w, 4 * h)
     images = {}
