@@ -104,7 +104,8 @@ class QuasarClient(MethodClient):
             self.reference_id = payload.frame_id
         elif LayerKind.UPDATED in kinds:
             self.cache.update(frame.layers[kinds.index(LayerKind.UPDATED)].quads)
-        mesh_layers = [MeshLayer(self.cache.quads, self.reference_camera, self.reference_rect, edit=self.cache.edit)]
+        mesh_layers = [MeshLayer(self.cache.quads, self.reference_camera, self.reference_rect, edit=self.cache.edit,
+                                 cached=True)]
         mesh_layers += [MeshLayer(l.quads, cam, l.atlas_rect, FILL_DEPTH_SCALE.get(l.kind, 1.0)) for l, cam in layers
                         if l.kind in (LayerKind.REVEALED, LayerKind.HIDDEN, LayerKind.WIDE)]
         mesh_layers += self.far_layers
@@ -119,6 +120,13 @@ class QuasarClient(MethodClient):
             self.atlas.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self.atlas.write(np.ascontiguousarray(image))
         self.mesh.build(mesh_layers, (w, h))
+        # a residual frame's revealed layer is cut from its own view of the scene, whose colour the atlas holds:
+        # the cached surfaces that view saw are drawn with it too (QuadMesh.set_current_view)
+        revealed = [(l, cam) for l, cam in layers if l.kind == LayerKind.REVEALED]
+        if revealed:
+            self.mesh.set_current_view(revealed[0][1], revealed[0][0].atlas_rect)
+        else:
+            self.mesh.set_current_view(None)
         self.ctx.finish()
         ms["mesh"] = (time.perf_counter() - t0) * 1e3
         self._needs_reference = False

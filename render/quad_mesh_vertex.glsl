@@ -10,12 +10,13 @@ uniform float u_depth_scale;  // > 1 pushes a fill-in layer (hidden, wide FOV, f
 uniform float u_max_depth;    // just inside the eye's far plane: nothing pushed back is clipped away
 out vec3 v_uvw;
 out vec3 v_view_pos;
-void main() {
+// The vertex in the eye's view space (setting v_uvw and v_view_pos); each draw's main projects it with u_proj.
+vec4 layer_vertex() {
     vec4 p = u_layer_to_view * vec4(in_position, 1.0);
     p.xyz *= u_depth_scale;   // along the eye ray: same pixel, slightly farther
     if (-p.z > u_max_depth) p.xyz *= u_max_depth / -p.z;
     float w = -in_position.z;
     v_view_pos = p.xyz;
     v_uvw = vec3(in_uv * w, w);
-    gl_Position = u_proj * p;
+    return p;
 }

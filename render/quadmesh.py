@@ -37,6 +37,10 @@ FLAT_VERTICES, FULL_VERTICES = 4, 16     # a flattened quad is one quad of the m
 MAX_RUN, MAX_STACK, RUN_TOLERANCE, RUN_MIN_COS = 16, 8, 1e-3, 0.999
 MAX_RUN_GRID = 1 << 23   # grid cells (32 MiB): a larger layer is drawn quad by quad
 MIN_RUN_QUADS = 16384    # a smaller layer too: its triangles cost less than finding its runs (about 1 ms)
+# A cached layer's surface takes the current view's colour as well where that view saw it and the two colours
+# agree within CURRENT_AGREEMENT in every channel (0..1): CURRENT_WEIGHT of it, the rest from the cached colour
+# (quad_mesh_refresh.frag.glsl).
+CURRENT_AGREEMENT, CURRENT_WEIGHT = 0.2, 0.5
 
 
 @dataclass
@@ -48,6 +52,17 @@ class MeshLayer:
     # (hidden, wide FOV) overlaps the main one at nearly the same depth, the main one wins the depth test.
     depth_scale: float = 1.0
     edit: QuadSetEdit | None = None   # how `quads` came from an earlier QuadSet (see the module's doc)
+    # colour from an older frame (a client's cache): where the current view saw the same surfaces, drawn as the
+    # mean of both (QuadMesh.set_current_view)
+    cached: bool = False
+
+
+@dataclass
+class CurrentView:
+    """The newest frame's own view of the scene (QuadMesh.set_current_view): its camera and where its colour sits in
+    the atlas."""
+    camera: Camera
+    atlas_rect: tuple[int, int, int, int]
 
 
 def quads_to_gpu(quads: QuadSet, first_vertex: int = 0) -> tuple[np.ndarray, int]:
@@ -92,11 +107,11 @@ class _LayerBuffers:
         """Indices to draw: those of every vertex slot in use (a quad's start at 3/2 of its first vertex)."""
         return self.end * 3 // 2
 
-    def reserve(self, ctx: moderngl.Context, prog, depth_prog, quads: int, vertices: int) -> None:
+    def reserve(self, ctx: moderngl.Context, programs: dict, quads: int, vertices: int) -> None:
         if quads <= self.quad_capacity and vertices <= self.vertex_capacity:
             return
         if self.quad_capacity:
-            for b in (self.vao, self.depth_vao, self.quad_buf, self.order_buf, self.vertex_buf, self.index_buf,
+            for b in (*self.vaos.values(), self.quad_buf, self.order_buf, self.vertex_buf, self.index_buf,
                       self.plane_buf):
                 b.release()
         self.release_packed()
@@ -107,10 +122,15 @@ class _LayerBuffers:
         self.vertex_buf = ctx.buffer(reserve=self.vertex_capacity * 5 * 4)
         self.index_buf = ctx.buffer(reserve=self.vertex_capacity * 3 // 2 * 4)
         self.plane_buf = ctx.buffer(reserve=self.vertex_capacity // FLAT_VERTICES * 16)
-        self.vao = ctx.vertex_array(prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")], self.index_buf)
-        self.depth_vao = ctx.vertex_array(depth_prog, [(self.vertex_buf, "3f 8x", "in_position")], self.index_buf)
+        self.vaos = self._vertex_arrays(ctx, programs, self.index_buf)
 
-    def pack(self, ctx: moderngl.Context, prog, depth_prog) -> None:
+    def _vertex_arrays(self, ctx: moderngl.Context, programs: dict, index_buf: moderngl.Buffer) -> dict:
+        """One vertex array per program (QuadMesh.programs), "depth" reading positions alone."""
+        return {name: ctx.vertex_array(prog, [(self.vertex_buf, "3f 8x", "in_position")] if name == "depth" else
+                                       [(self.vertex_buf, "3f 2f", "in_position", "in_uv")], index_buf)
+                for name, prog in programs.items()}
+
+    def pack(self, ctx: moderngl.Context, programs: dict) -> None:
         """Copy the indices of the live triangles, in order, to the packed index buffer (drawn instead of the slots
         until the next build or edit): the empty triangles of freed quads and of runs' other quads cost llvmpipe
         about 30 ns each to cull."""
@@ -120,25 +140,23 @@ class _LayerBuffers:
             self.release_packed()
             self.packed_capacity = max(live.size, 3 * 1024)
             self.packed_buf = ctx.buffer(reserve=4 * self.packed_capacity)
-            self.packed_vao = ctx.vertex_array(prog, [(self.vertex_buf, "3f 2f", "in_position", "in_uv")],
-                                               self.packed_buf)
-            self.packed_depth_vao = ctx.vertex_array(depth_prog, [(self.vertex_buf, "3f 8x", "in_position")],
-                                                     self.packed_buf)
+            self.packed_vaos = self._vertex_arrays(ctx, programs, self.packed_buf)
         if live.size:
             self.packed_buf.write(live)
         self.packed_indices = live.size
 
     def release_packed(self) -> None:
         if self.packed_capacity:
-            for b in (self.packed_vao, self.packed_depth_vao, self.packed_buf):
+            for b in (*self.packed_vaos.values(), self.packed_buf):
                 b.release()
         self.packed_capacity, self.packed_indices = 0, None
 
-    def draw(self, with_colour: bool) -> None:
+    def draw(self, program: str) -> None:
+        """Draw the layer's triangles with one of QuadMesh.programs."""
         if self.packed_indices is not None:
-            vao, count = (self.packed_vao if with_colour else self.packed_depth_vao), self.packed_indices
+            vao, count = self.packed_vaos[program], self.packed_indices
         else:
-            vao, count = (self.vao if with_colour else self.depth_vao), self.indices
+            vao, count = self.vaos[program], self.indices
         if count:
             vao.render(moderngl.TRIANGLES, vertices=count)
 
@@ -168,8 +186,11 @@ class QuadMesh:
         self.runs = [compute(ctx, HERE / "quad_mesh_runs.comp", PASS=k) for k in range(5)]
         self.min_run_quads = MIN_RUN_QUADS   # 0 merges every layer; None none
         self._scratch_buffers: dict[str, moderngl.Buffer] = {}   # the runs' grid and lists (_scratch)
-        self.prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh.frag.glsl")
-        self.depth_prog = program(ctx, HERE / "quad_mesh.vert.glsl", HERE / "quad_mesh_depth.frag.glsl")
+        self.programs = {name: program(ctx, HERE / f"{vertex}.vert.glsl", HERE / f"{fragment}.frag.glsl")
+                         for name, vertex, fragment in (("colour", "quad_mesh", "quad_mesh"),
+                                                        ("depth", "quad_mesh", "quad_mesh_depth"),
+                                                        ("refresh", "quad_mesh_refresh", "quad_mesh_refresh"))}
+        self.current: CurrentView | None = None
         self._buffers: list[_LayerBuffers] = []
         self.layers: list[tuple[MeshLayer, _LayerBuffers]] = []
         self.quad_count = 0
@@ -199,7 +220,7 @@ class QuadMesh:
                         # packed after a build from scratch (a reference frame), where it pays: a cache that
                         # changes with every frame (an animated scene) would pack every frame for little gain
                         self.ctx.memory_barrier()
-                        buf.pack(self.ctx, self.prog, self.depth_prog)
+                        buf.pack(self.ctx, self.programs)
             if buf.indices:
                 self.layers.append((layer, buf))
         for buf in self._buffers[len(layers):]:
@@ -213,7 +234,7 @@ class QuadMesh:
         buf.end, buf.dead = vertices, 0
         if not n:
             return
-        buf.reserve(self.ctx, self.prog, self.depth_prog, n, vertices)
+        buf.reserve(self.ctx, self.programs, n, vertices)
         self._run_builders(layer, buf, rows, atlas_size)
 
     def _edit(self, layer: MeshLayer, buf: _LayerBuffers, atlas_size: tuple[int, int]) -> bool:
@@ -336,21 +357,43 @@ class QuadMesh:
         buffer = self._scratch_buffers[name] = self.ctx.buffer(reserve=size)
         return buffer
 
+    def set_current_view(self, camera: Camera | None, atlas_rect: tuple[int, int, int, int] | None = None) -> None:
+        """Until the next call, draw the cached layers (MeshLayer.cached) with the current view's colour as well:
+        `camera` is the newest frame's own view, its colour at `atlas_rect` of the atlas `draw` is given. A cached
+        surface was textured from an older view, often at a steeper angle, and both pictures carry their own coding
+        error: where the current view saw the surface the pixel is the mean of both colours. "Saw": the point lies
+        in that view's frustum and the colours agree (CURRENT_AGREEMENT); a surface in front of it there, of
+        another colour, keeps the cached one. None: the cached colour alone (a reference frame's view is the
+        cache's own)."""
+        self.current = None if camera is None else CurrentView(camera, tuple(atlas_rect))
+
     def draw(self, camera: Camera, atlas: moderngl.Texture | None) -> None:
         """Render the mesh from `camera` into the bound framebuffer (depth test on): colour from `atlas` and view
         depth into its two targets, or, without an atlas, the view depth alone into its one target."""
-        prog = self.prog if atlas is not None else self.depth_prog
+        current = self.current if atlas is not None else None
+        view = camera.view_matrix()
+        names = ("colour", "refresh") if atlas is not None else ("depth",)
+        for name in names:
+            set_uniforms(self.programs[name], u_proj=gl_matrix(camera.projection_matrix()),
+                         u_max_depth=0.999 * camera.frustum.far, u_atlas=0)
         if atlas is not None:
             atlas.use(0)
-            set_uniforms(prog, u_atlas=0)
-        set_uniforms(prog, u_proj=gl_matrix(camera.projection_matrix()), u_max_depth=0.999 * camera.frustum.far)
-        view = camera.view_matrix()
+        if current is not None:
+            x, y, w, h = current.atlas_rect
+            aw, ah = atlas.size
+            set_uniforms(self.programs["refresh"],
+                         u_eye_to_current=gl_matrix(current.camera.view_projection() @ np.linalg.inv(view)),
+                         u_current_rect=(x / aw, y / ah, w / aw, h / ah),
+                         u_current_uv_rect=uv_rect(current.atlas_rect, atlas.size),
+                         u_current_agreement=CURRENT_AGREEMENT, u_current_weight=CURRENT_WEIGHT)
         for layer, buf in self.layers:
+            name = "depth" if atlas is None else "refresh" if current is not None and layer.cached else "colour"
+            prog = self.programs[name]
             if atlas is not None:
                 set_uniforms(prog, u_uv_rect=uv_rect(layer.atlas_rect, atlas.size))
             set_uniforms(prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()),
                          u_depth_scale=float(layer.depth_scale))
-            buf.draw(atlas is not None)
+            buf.draw(name)
 
 
 class MeshView:

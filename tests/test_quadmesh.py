@@ -187,6 +187,58 @@ def test_a_layer_samples_only_its_own_atlas_rect(ctx):
     assert image[drawn][:, 0].min() == 255
 
 
+def test_cached_layer_takes_the_current_views_colour_where_that_view_saw_the_surface(ctx):
+    """A cached layer (a grey wall 4 m in front of the reference view) seen after a residual frame whose own view
+    (elsewhere) saw the wall in nearly the same colours, a gradient of its pixel coordinates, and a revealed green
+    quad 2 m in front of it hiding the wall's left part. Where the current view saw the wall the pixel is the mean of
+    both colours, sampled where the wall lies in the current view; where the occluder hid it (the colours disagree),
+    and with no current view, the cached colour alone."""
+    w, h = 64, 36
+    reference = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
+    current = Camera.perspective(Pose.look_at([0.3, 0.1, 0.0], [0.0, 0.0, -4.0]), w, h)
+    eye = Camera.perspective(Pose.look_at([-0.2, 0.0, -3.0], [0.0, 0.0, -4.0]), w, h)   # beyond the occluder
+    blocks = [(x, y, 2) for y in range(0, h, 4) for x in range(0, w, 4)]
+    wall = plane_quads(reference, blocks, (0.0, 0.0, 1.0), -4.0)
+    occluder = plane_quads(current, [b for b in blocks if b[0] < w // 2], (0.0, 0.0, 1.0), -2.0)
+    atlas_img = np.full((h, 2 * w, 4), 255, np.uint8)
+    atlas_img[:, :w, :3] = 120
+    col, row = np.meshgrid(np.arange(w), np.arange(h))
+    atlas_img[:, w:, 0], atlas_img[:, w:, 1], atlas_img[:, w:, 2] = 120 + col - 32, 120 + 1.5 * (row - 18), 140
+    atlas_img[:, w:w + w // 2, :3] = (0, 255, 0)        # the occluder
+    atlas = ctx.texture((2 * w, h), 4, atlas_img.tobytes())
+    atlas.filter = (moderngl.LINEAR, moderngl.LINEAR)
+    mesh = QuadMesh(ctx)
+    mesh.build([MeshLayer(wall, reference, (0, 0, w, h), cached=True),
+                MeshLayer(occluder, current, (w, 0, w, h))], (2 * w, h))
+    view = MeshView(ctx, w, h)
+
+    # where each eye pixel's ray meets the wall (z = -4), and where that point lies in the current view
+    ex, ey = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays = eye.image_rays(ex, ey) @ eye.pose.camera_to_world()[:3, :3].T
+    points = eye.pose.position + rays * ((-4.0 - eye.pose.position[2]) / rays[..., 2:3])
+    u, v = current.project(points.reshape(-1, 3)).T.reshape(2, h, w)
+    hidden = u < w / 2 - 1.5                         # behind the occluder, seen from the current view
+    seen = u > w / 2 + 1.5
+    inside = np.zeros((h, w), bool)
+    inside[2:-2, 2:-2] = True
+
+    mesh.set_current_view(current, (w, 0, w, h))
+    view.render(mesh, eye, atlas)
+    image, drawn = view.read_color_drawn()
+    image = image.astype(float)
+    assert drawn.all()
+    assert (hidden & inside).sum() > 100 and (seen & inside).sum() > 100
+    np.testing.assert_array_equal(image[hidden & inside], [[120, 120, 120]] * int((hidden & inside).sum()))
+    sel = seen & inside
+    np.testing.assert_allclose(image[sel][:, 0], 120 + 0.5 * (u[sel] - 0.5 - 32), atol=1.0)
+    np.testing.assert_allclose(image[sel][:, 1], 120 + 0.5 * 1.5 * (v[sel] - 0.5 - 18), atol=1.5)
+    np.testing.assert_allclose(image[sel][:, 2], 130, atol=1.0)
+
+    mesh.set_current_view(None)
+    view.render(mesh, eye, atlas)
+    assert (view.read_color()[inside] == 120).all()
+
+
 SHARP_PROBE = """#version 430
 layout(local_size_x = 64) in;
 #include "sharp_texture.glsl"

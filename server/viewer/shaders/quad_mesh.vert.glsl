@@ -3,3 +3,6 @@
 // this file) in GLSL ES 3.00.
 precision highp float;
 #include "quad_mesh_vertex.glsl"
+void main() {
+    gl_Position = u_proj * layer_vertex();
+}
