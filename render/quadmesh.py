@@ -381,9 +381,7 @@ class QuadMesh:
         if current is not None:
             x, y, w, h = current.atlas_rect
             aw, ah = atlas.size
-            set_uniforms(self.programs["refresh"],
-                         u_eye_to_current=gl_matrix(current.camera.view_projection() @ np.linalg.inv(view)),
-                         u_current_rect=(x / aw, y / ah, w / aw, h / ah),
+            set_uniforms(self.programs["refresh"], u_current_rect=(x / aw, y / ah, w / aw, h / ah),
                          u_current_uv_rect=uv_rect(current.atlas_rect, atlas.size),
                          u_current_agreement=CURRENT_AGREEMENT, u_current_weight=CURRENT_WEIGHT)
         for layer, buf in self.layers:
@@ -393,6 +391,9 @@ class QuadMesh:
                 set_uniforms(prog, u_uv_rect=uv_rect(layer.atlas_rect, atlas.size))
             set_uniforms(prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()),
                          u_depth_scale=float(layer.depth_scale))
+            if name == "refresh":
+                set_uniforms(prog, u_layer_to_current=gl_matrix(current.camera.view_projection()
+                                                                @ layer.camera.pose.camera_to_world()))
             buf.draw(name)
 
 

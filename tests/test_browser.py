@@ -78,7 +78,8 @@ def test_page_follows_a_trace_and_shows_the_stream(server, browser):
 def test_page_and_python_client_draw_the_same_frame_alike(server, browser):
     """At a fixed pose: the page keeps the frames it applied (from the last reference on) and stops after the 8th
     (frames 0..7: reference 5, residuals 6 and 7); the Python client applies the same bytes and renders the same
-    pose; the two images agree (SSIM >= 0.9)."""
+    pose; the two images agree (SSIM >= 0.99: 0.997 here; 0.988 when the page did not yet draw the cached layer
+    with the residual frame's own view, as the Python client does)."""
     walk = resolve_trace("builtin:walk")
     position, quat = walk.pose_at(walk.times[0] + 3.0)
     pose = ",".join(f"{v:.9g}" for v in (*position, *quat))
@@ -106,7 +107,7 @@ def test_page_and_python_client_draw_the_same_frame_alike(server, browser):
     assert python_image.mean() > 20, "the Python client drew nothing"
     score = ssim(page_image, python_image)
     print(f"page vs Python client at a fixed pose, frames {[p.frame_id for p in payloads]}: SSIM {score:.4f}")
-    assert score >= 0.9, f"page vs Python client SSIM {score:.4f}"
+    assert score >= 0.99, f"page vs Python client SSIM {score:.4f}"
 
 
 def test_page_without_the_token_is_refused_and_the_token_is_never_logged(server, browser):

@@ -178,7 +178,7 @@ def test_websocket_rejects_other_origins_text_and_oversized_messages():
     run(main())
 
 
-@pytest.mark.parametrize("stage", ["quad_expand", "quad_mesh"])
+@pytest.mark.parametrize("stage", ["quad_expand", "quad_mesh", "quad_mesh_refresh"])
 def test_served_shaders_compile_as_glsl_es(ctx, stage):
     """The viewer's shaders as the server serves them (the Python client's shared bodies included) compile as
     GLSL ES 3.00 -- Mesa's desktop GL takes ES 3.00 shaders too -- and the mesh's keep the uniforms renderer.js
@@ -187,6 +187,8 @@ def test_served_shaders_compile_as_glsl_es(ctx, stage):
     fragment, _ = static_file(f"/shaders/{stage}.frag.glsl")
     assert vertex.startswith(b"#version 300 es") and fragment.startswith(b"#version 300 es")
     prog = ctx.program(vertex_shader=vertex.decode(), fragment_shader=fragment.decode())
-    if stage == "quad_mesh":
-        for name in ("u_proj", "u_layer_to_view", "u_depth_scale", "u_max_depth", "u_atlas", "u_uv_rect"):
-            assert prog.get(name, None) is not None, name
+    names = {"quad_mesh": (), "quad_mesh_refresh": ("u_layer_to_current", "u_current_rect", "u_current_uv_rect",
+                                                    "u_current_agreement", "u_current_weight")}
+    for name in ("u_proj", "u_layer_to_view", "u_depth_scale", "u_max_depth", "u_atlas", "u_uv_rect",
+                 *names[stage]) if stage in names else ():
+        assert prog.get(name, None) is not None, name

@@ -103,9 +103,11 @@ async function start() {
   gl = canvas.getContext("webgl2", { antialias: false, alpha: true, premultipliedAlpha: true, xrCompatible: true });
   if (!gl) throw new Error("this browser has no WebGL2");
   if (typeof VideoDecoder === "undefined") throw new Error("this browser has no WebCodecs VideoDecoder (it needs https or localhost)");
-  const names = ["quad_expand.vert", "quad_expand.frag", "quad_mesh.vert", "quad_mesh.frag"];
-  const [expandVert, expandFrag, meshVert, meshFrag] = await Promise.all(names.map((n) => fetchText(`/shaders/${n}.glsl`)));
-  renderer = new MeshRenderer(gl, { expandVert, expandFrag, meshVert, meshFrag });
+  const names = ["quad_expand.vert", "quad_expand.frag", "quad_mesh.vert", "quad_mesh.frag", "quad_mesh_refresh.vert",
+                 "quad_mesh_refresh.frag"];
+  const [expandVert, expandFrag, meshVert, meshFrag, refreshVert, refreshFrag] =
+    await Promise.all(names.map((n) => fetchText(`/shaders/${n}.glsl`)));
+  renderer = new MeshRenderer(gl, { expandVert, expandFrag, meshVert, meshFrag, refreshVert, refreshFrag });
   video = new AtlasVideo(onPicture, (message) => reject(clock(), message));
   session = new ClientSession();
   user.position = config.start.position.slice();
@@ -301,7 +303,8 @@ function onPicture(frameId, picture) {
 }
 
 // client/quasar.py QuasarClient.receive, after the picture arrived: keep or update the cached reference frame,
-// then the mesh = cache (reference camera) + this frame's fill layers, textured from this frame's atlas.
+// then the mesh = cache (reference camera) + this frame's fill layers, textured from this frame's atlas; a residual
+// frame's own view (its revealed layer's camera and rect) also colours the cached surfaces it saw.
 function apply({ header, quads }, picture) {
   const isReference = header.frameType === FrameType.REFERENCE;
   const layers = quads.layers;
@@ -330,7 +333,7 @@ function apply({ header, quads }, picture) {
     if (updated) cache.update(updated.rows, updated.count);
   }
   const mesh = [{ rows: cache.rows, count: cache.count, camera: reference.camera, width: reference.width,
-                  height: reference.height, rect: reference.rect, depthScale: 1 }];
+                  height: reference.height, rect: reference.rect, depthScale: 1, cached: true }];
   for (const l of layers) {
     if (FILL_KINDS.includes(l.kind)) {
       mesh.push({ rows: l.rows, count: l.count, camera: l.cam, width: l.width, height: l.height, rect: l.rect,
@@ -340,6 +343,8 @@ function apply({ header, quads }, picture) {
   mesh.push(...farLayers);
   renderer.setAtlas(picture, width, height);
   renderer.setLayers(mesh);
+  const revealed = isReference ? null : layers.find((l) => l.kind === LayerKind.REVEALED);
+  renderer.setCurrentView(revealed ? revealed.cam : null, revealed ? revealed.rect : null);
   stats.quads = renderer.quadCount;
   needsReference = false;
 }

@@ -2,15 +2,19 @@
 // every layer's quad rows go into one instance buffer and shaders/quad_expand.vert.glsl (render/quad.glsl
 // inside) turns each quad into 16 vertices, captured by transform feedback -- the compute shader's job, in the
 // same buffer layout, so the same 24-index pattern per quad draws them. Drawing, at the display's rate: each
-// layer with its camera-to-eye matrix (shaders/quad_mesh.vert/frag.glsl). The atlas is the decoded VideoFrame,
+// layer with its camera-to-eye matrix (shaders/quad_mesh.vert/frag.glsl; the cached layer, after a residual frame,
+// with the frame's own view too: shaders/quad_mesh_refresh.vert/frag.glsl). The atlas is the decoded VideoFrame,
 // uploaded as is (top row first, so uv (0, 0) is its top-left corner, as in the Python client).
 import { ROW_FLOATS } from "./quads.js";
-import { cameraToWorld, mul, projection } from "./math.js";
+import { cameraToWorld, mul, projection, viewMatrix } from "./math.js";
 
 const QUAD_ATTRIBUTES = ["a_head", "a_normal_depth", "a_off0", "a_off1", "a_off2", "a_off3"];
 const VERTEX_FLOATS = 5;             // xyz, uv
 const VERTICES_PER_QUAD = 16, INDICES_PER_QUAD = 24;
 const SUBQUAD_INDICES = [0, 2, 1, 1, 2, 3];   // quad_mesh.comp's order
+const MESH_ATTRIBUTES = ["in_position", "in_uv"];   // bound to locations 0, 1 in both mesh programs: one VAO
+// render/quadmesh.py CURRENT_AGREEMENT, CURRENT_WEIGHT
+const CURRENT_AGREEMENT = 0.2, CURRENT_WEIGHT = 0.5;
 
 function compile(gl, type, source, name) {
   const shader = gl.createShader(type);
@@ -20,11 +24,12 @@ function compile(gl, type, source, name) {
   return shader;
 }
 
-function link(gl, [vs, fs], names, varyings = null) {
+function link(gl, [vs, fs], names, varyings = null, attributes = []) {
   const prog = gl.createProgram();
   gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, vs, names[0]));
   gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, fs, names[1]));
   if (varyings) gl.transformFeedbackVaryings(prog, varyings, gl.INTERLEAVED_ATTRIBS);
+  attributes.forEach((name, loc) => gl.bindAttribLocation(prog, loc, name));
   gl.linkProgram(prog);
   if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(`${names[0]}: ${gl.getProgramInfoLog(prog)}`);
   return prog;
@@ -35,15 +40,21 @@ function uniforms(gl, prog, names) {
 }
 
 export class MeshRenderer {
-  // shaders: {expandVert, expandFrag, meshVert, meshFrag} sources
+  // shaders: {expandVert, expandFrag, meshVert, meshFrag, refreshVert, refreshFrag} sources
   constructor(gl, shaders) {
     this.gl = gl;
     this.expand = link(gl, [shaders.expandVert, shaders.expandFrag], ["quad_expand.vert.glsl", "quad_expand.frag.glsl"],
                        ["v_position", "v_uv"]);
     this.expandU = uniforms(gl, this.expand, ["u_frustum", "u_near", "u_size", "u_atlas_rect", "u_atlas_size"]);
-    this.mesh = link(gl, [shaders.meshVert, shaders.meshFrag], ["quad_mesh.vert.glsl", "quad_mesh.frag.glsl"]);
-    this.meshU = uniforms(gl, this.mesh, ["u_layer_to_view", "u_proj", "u_depth_scale", "u_max_depth", "u_atlas",
-                                          "u_uv_rect"]);
+    this.mesh = link(gl, [shaders.meshVert, shaders.meshFrag], ["quad_mesh.vert.glsl", "quad_mesh.frag.glsl"], null,
+                     MESH_ATTRIBUTES);
+    const meshUniforms = ["u_layer_to_view", "u_proj", "u_depth_scale", "u_max_depth", "u_atlas", "u_uv_rect"];
+    this.meshU = uniforms(gl, this.mesh, meshUniforms);
+    this.refresh = link(gl, [shaders.refreshVert, shaders.refreshFrag],
+                        ["quad_mesh_refresh.vert.glsl", "quad_mesh_refresh.frag.glsl"], null, MESH_ATTRIBUTES);
+    this.refreshU = uniforms(gl, this.refresh, [...meshUniforms, "u_layer_to_current", "u_current_rect",
+                                                "u_current_uv_rect", "u_current_agreement", "u_current_weight"]);
+    this.current = null;               // {clip: world -> the current view's clip space, rect, uvRect}
     this.quadBuffer = gl.createBuffer();
     this.vertexBuffer = gl.createBuffer();
     this.indexBuffer = gl.createBuffer();
@@ -51,7 +62,7 @@ export class MeshRenderer {
     this.meshVao = gl.createVertexArray();
     this.feedback = gl.createTransformFeedback();
     this.capacity = 0;
-    this.layers = [];                  // {camera, depthScale, first, count, layerToWorld}
+    this.layers = [];                  // {camera, depthScale, first, count, uvRect, layerToWorld, cached}
     this.atlas = gl.createTexture();
     this.atlasSize = null;
     gl.bindTexture(gl.TEXTURE_2D, this.atlas);
@@ -82,7 +93,7 @@ export class MeshRenderer {
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, indices, gl.STATIC_DRAW);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.vertexBuffer);
     for (const [name, size, offset] of [["in_position", 3, 0], ["in_uv", 2, 12]]) {
-      const loc = gl.getAttribLocation(this.mesh, name);
+      const loc = MESH_ATTRIBUTES.indexOf(name);
       gl.enableVertexAttribArray(loc);
       gl.vertexAttribPointer(loc, size, gl.FLOAT, false, VERTEX_FLOATS * 4, offset);
     }
@@ -140,13 +151,27 @@ export class MeshRenderer {
       const [x, y, w, h] = l.rect, [aw, ah] = this.atlasSize;
       const uvRect = [(x + 0.5) / aw, (y + 0.5) / ah, (x + w - 0.5) / aw, (y + h - 0.5) / ah];
       this.layers.push({ camera: l.camera, depthScale: l.depthScale, first, count: l.count, uvRect,
-                         layerToWorld: cameraToWorld(l.camera.position, l.camera.quat) });
+                         layerToWorld: cameraToWorld(l.camera.position, l.camera.quat), cached: !!l.cached });
       first += l.count;
     }
     gl.disable(gl.RASTERIZER_DISCARD);
     gl.bindTransformFeedback(gl.TRANSFORM_FEEDBACK, null);
     gl.bindVertexArray(null);
     gl.bindBuffer(gl.ARRAY_BUFFER, null);
+  }
+
+  // render/quadmesh.py QuadMesh.set_current_view: until the next call, the cached layers (setLayers' `cached`) are
+  // drawn with the colour of the newest frame's own view too (camera: layerCamera(), its rect in this atlas), or
+  // with their own alone (null). Call after setAtlas.
+  setCurrentView(camera, rect) {
+    if (!camera) {
+      this.current = null;
+      return;
+    }
+    const [x, y, w, h] = rect, [aw, ah] = this.atlasSize;
+    this.current = { clip: mul(projection(camera.frustum), viewMatrix(camera.position, camera.quat)),
+                     rect: [x / aw, y / ah, w / aw, h / ah],
+                     uvRect: [(x + 0.5) / aw, (y + 0.5) / ah, (x + w - 0.5) / aw, (y + h - 0.5) / ah] };
   }
 
   // Draw the mesh seen through view (world -> eye, column-major) and proj (a projection matrix, or a frustum
@@ -164,19 +189,34 @@ export class MeshRenderer {
     gl.depthFunc(gl.LESS);
     gl.disable(gl.CULL_FACE);
     gl.disable(gl.BLEND);
-    gl.useProgram(this.mesh);
     gl.activeTexture(gl.TEXTURE0);
     gl.bindTexture(gl.TEXTURE_2D, this.atlas);
-    gl.uniform1i(u.u_atlas, 0);
     const matrix = proj.length ? proj : projection(proj);
-    gl.uniformMatrix4fv(u.u_proj, false, new Float32Array(matrix));
     // just inside the far plane (f = m[14] / (m[10] + 1) for a column-major perspective matrix)
-    gl.uniform1f(u.u_max_depth, 0.999 * (proj.length ? matrix[14] / (matrix[10] + 1) : proj.far));
+    const maxDepth = 0.999 * (proj.length ? matrix[14] / (matrix[10] + 1) : proj.far);
+    const current = this.current;
+    for (const [prog, pu] of [[this.mesh, u], [this.refresh, this.refreshU]]) {
+      gl.useProgram(prog);
+      gl.uniform1i(pu.u_atlas, 0);
+      gl.uniformMatrix4fv(pu.u_proj, false, new Float32Array(matrix));
+      gl.uniform1f(pu.u_max_depth, maxDepth);
+    }
+    if (current) {
+      const r = this.refreshU;
+      gl.uniform4f(r.u_current_rect, ...current.rect);
+      gl.uniform4f(r.u_current_uv_rect, ...current.uvRect);
+      gl.uniform1f(r.u_current_agreement, CURRENT_AGREEMENT);
+      gl.uniform1f(r.u_current_weight, CURRENT_WEIGHT);
+    }
     gl.bindVertexArray(this.meshVao);
     for (const layer of this.layers) {
-      gl.uniform1f(u.u_depth_scale, layer.depthScale);
-      gl.uniform4f(u.u_uv_rect, ...layer.uvRect);
-      gl.uniformMatrix4fv(u.u_layer_to_view, false, new Float32Array(mul(view, layer.layerToWorld)));
+      const refresh = current !== null && layer.cached;
+      const pu = refresh ? this.refreshU : u;
+      gl.useProgram(refresh ? this.refresh : this.mesh);
+      gl.uniform1f(pu.u_depth_scale, layer.depthScale);
+      gl.uniform4f(pu.u_uv_rect, ...layer.uvRect);
+      gl.uniformMatrix4fv(pu.u_layer_to_view, false, new Float32Array(mul(view, layer.layerToWorld)));
+      if (refresh) gl.uniformMatrix4fv(pu.u_layer_to_current, false, new Float32Array(mul(current.clip, layer.layerToWorld)));
       gl.drawElements(gl.TRIANGLES, INDICES_PER_QUAD * layer.count, gl.UNSIGNED_INT, INDICES_PER_QUAD * layer.first * 4);
     }
     gl.bindVertexArray(null);
