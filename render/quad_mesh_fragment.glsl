@@ -10,7 +10,7 @@ uniform sampler2D u_atlas;
 uniform vec4 u_uv_rect;   // the layer's atlas rect in uv, half a texel in: (u0, v0, u1, v1)
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_depth;
-void main() {
-    f_color = vec4(sharp_texture(u_atlas, clamp(v_uvw.xy / v_uvw.z, u_uv_rect.xy, u_uv_rect.zw)).rgb, 1.0);
-    f_depth = -v_view_pos.z;
+// The layer's colour at this fragment; each draw's main writes it to f_color (alpha 1) and -v_view_pos.z to f_depth.
+vec3 layer_colour() {
+    return sharp_texture(u_atlas, clamp(v_uvw.xy / v_uvw.z, u_uv_rect.xy, u_uv_rect.zw)).rgb;
 }

@@ -37,10 +37,6 @@ FLAT_VERTICES, FULL_VERTICES = 4, 16     # a flattened quad is one quad of the m
 MAX_RUN, MAX_STACK, RUN_TOLERANCE, RUN_MIN_COS = 16, 8, 1e-3, 0.999
 MAX_RUN_GRID = 1 << 23   # grid cells (32 MiB): a larger layer is drawn quad by quad
 MIN_RUN_QUADS = 16384    # a smaller layer too: its triangles cost less than finding its runs (about 1 ms)
-# A cached layer's surface takes the current view's colour as well where that view saw it and the two colours
-# agree within CURRENT_AGREEMENT in every channel (0..1): CURRENT_WEIGHT of it, the rest from the cached colour
-# (quad_mesh_refresh.frag.glsl).
-CURRENT_AGREEMENT, CURRENT_WEIGHT = 0.2, 0.5
 
 
 @dataclass
@@ -362,8 +358,8 @@ class QuadMesh:
         `camera` is the newest frame's own view, its colour at `atlas_rect` of the atlas `draw` is given. A cached
         surface was textured from an older view, often at a steeper angle, and both pictures carry their own coding
         error: where the current view saw the surface the pixel is the mean of both colours. "Saw": the point lies
-        in that view's frustum and the colours agree (CURRENT_AGREEMENT); a surface in front of it there, of
-        another colour, keeps the cached one. None: the cached colour alone (a reference frame's view is the
+        in that view's frustum and the colours agree (quad_mesh_refresh_fragment.glsl); a surface in front of it
+        there, of another colour, keeps the cached one. None: the cached colour alone (a reference frame's view is the
         cache's own)."""
         self.current = None if camera is None else CurrentView(camera, tuple(atlas_rect))
 
@@ -382,8 +378,7 @@ class QuadMesh:
             x, y, w, h = current.atlas_rect
             aw, ah = atlas.size
             set_uniforms(self.programs["refresh"], u_current_rect=(x / aw, y / ah, w / aw, h / ah),
-                         u_current_uv_rect=uv_rect(current.atlas_rect, atlas.size),
-                         u_current_agreement=CURRENT_AGREEMENT, u_current_weight=CURRENT_WEIGHT)
+                         u_current_uv_rect=uv_rect(current.atlas_rect, atlas.size))
         for layer, buf in self.layers:
             name = "depth" if atlas is None else "refresh" if current is not None and layer.cached else "colour"
             prog = self.programs[name]

@@ -187,8 +187,8 @@ def test_served_shaders_compile_as_glsl_es(ctx, stage):
     fragment, _ = static_file(f"/shaders/{stage}.frag.glsl")
     assert vertex.startswith(b"#version 300 es") and fragment.startswith(b"#version 300 es")
     prog = ctx.program(vertex_shader=vertex.decode(), fragment_shader=fragment.decode())
-    names = {"quad_mesh": (), "quad_mesh_refresh": ("u_layer_to_current", "u_current_rect", "u_current_uv_rect",
-                                                    "u_current_agreement", "u_current_weight")}
-    for name in ("u_proj", "u_layer_to_view", "u_depth_scale", "u_max_depth", "u_atlas", "u_uv_rect",
-                 *names[stage]) if stage in names else ():
+    mesh = ("u_proj", "u_layer_to_view", "u_depth_scale", "u_max_depth", "u_atlas", "u_uv_rect")
+    expected = {"quad_expand": (), "quad_mesh": mesh,
+                "quad_mesh_refresh": (*mesh, "u_layer_to_current", "u_current_rect", "u_current_uv_rect")}
+    for name in expected[stage]:
         assert prog.get(name, None) is not None, name

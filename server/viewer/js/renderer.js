@@ -13,8 +13,6 @@ const VERTEX_FLOATS = 5;             // xyz, uv
 const VERTICES_PER_QUAD = 16, INDICES_PER_QUAD = 24;
 const SUBQUAD_INDICES = [0, 2, 1, 1, 2, 3];   // quad_mesh.comp's order
 const MESH_ATTRIBUTES = ["in_position", "in_uv"];   // bound to locations 0, 1 in both mesh programs: one VAO
-// render/quadmesh.py CURRENT_AGREEMENT, CURRENT_WEIGHT
-const CURRENT_AGREEMENT = 0.2, CURRENT_WEIGHT = 0.5;
 
 function compile(gl, type, source, name) {
   const shader = gl.createShader(type);
@@ -35,6 +33,11 @@ function link(gl, [vs, fs], names, varyings = null, attributes = []) {
   return prog;
 }
 
+// The atlas uv a layer's colour is sampled within: its rect half a texel in (render/quadmesh.py uv_rect).
+function uvRect([x, y, w, h], [aw, ah]) {
+  return [(x + 0.5) / aw, (y + 0.5) / ah, (x + w - 0.5) / aw, (y + h - 0.5) / ah];
+}
+
 function uniforms(gl, prog, names) {
   return Object.fromEntries(names.map((n) => [n, gl.getUniformLocation(prog, n)]));
 }
@@ -53,7 +56,7 @@ export class MeshRenderer {
     this.refresh = link(gl, [shaders.refreshVert, shaders.refreshFrag],
                         ["quad_mesh_refresh.vert.glsl", "quad_mesh_refresh.frag.glsl"], null, MESH_ATTRIBUTES);
     this.refreshU = uniforms(gl, this.refresh, [...meshUniforms, "u_layer_to_current", "u_current_rect",
-                                                "u_current_uv_rect", "u_current_agreement", "u_current_weight"]);
+                                                "u_current_uv_rect"]);
     this.current = null;               // {clip: world -> the current view's clip space, rect, uvRect}
     this.quadBuffer = gl.createBuffer();
     this.vertexBuffer = gl.createBuffer();
@@ -147,10 +150,8 @@ export class MeshRenderer {
       gl.drawArraysInstanced(gl.POINTS, 0, VERTICES_PER_QUAD, l.count);
       gl.endTransformFeedback();
       gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, null);
-      // the atlas uv its colour is sampled within: its rect half a texel in (render/quadmesh.py uv_rect)
-      const [x, y, w, h] = l.rect, [aw, ah] = this.atlasSize;
-      const uvRect = [(x + 0.5) / aw, (y + 0.5) / ah, (x + w - 0.5) / aw, (y + h - 0.5) / ah];
-      this.layers.push({ camera: l.camera, depthScale: l.depthScale, first, count: l.count, uvRect,
+      this.layers.push({ camera: l.camera, depthScale: l.depthScale, first, count: l.count,
+                         uvRect: uvRect(l.rect, this.atlasSize),
                          layerToWorld: cameraToWorld(l.camera.position, l.camera.quat), cached: !!l.cached });
       first += l.count;
     }
@@ -170,8 +171,7 @@ export class MeshRenderer {
     }
     const [x, y, w, h] = rect, [aw, ah] = this.atlasSize;
     this.current = { clip: mul(projection(camera.frustum), viewMatrix(camera.position, camera.quat)),
-                     rect: [x / aw, y / ah, w / aw, h / ah],
-                     uvRect: [(x + 0.5) / aw, (y + 0.5) / ah, (x + w - 0.5) / aw, (y + h - 0.5) / ah] };
+                     rect: [x / aw, y / ah, w / aw, h / ah], uvRect: uvRect(rect, this.atlasSize) };
   }
 
   // Draw the mesh seen through view (world -> eye, column-major) and proj (a projection matrix, or a frustum
@@ -205,8 +205,6 @@ export class MeshRenderer {
       const r = this.refreshU;
       gl.uniform4f(r.u_current_rect, ...current.rect);
       gl.uniform4f(r.u_current_uv_rect, ...current.uvRect);
-      gl.uniform1f(r.u_current_agreement, CURRENT_AGREEMENT);
-      gl.uniform1f(r.u_current_weight, CURRENT_WEIGHT);
     }
     gl.bindVertexArray(this.meshVao);
     for (const layer of this.layers) {
@@ -216,7 +214,9 @@ export class MeshRenderer {
       gl.uniform1f(pu.u_depth_scale, layer.depthScale);
       gl.uniform4f(pu.u_uv_rect, ...layer.uvRect);
       gl.uniformMatrix4fv(pu.u_layer_to_view, false, new Float32Array(mul(view, layer.layerToWorld)));
-      if (refresh) gl.uniformMatrix4fv(pu.u_layer_to_current, false, new Float32Array(mul(current.clip, layer.layerToWorld)));
+      if (refresh) {
+        gl.uniformMatrix4fv(pu.u_layer_to_current, false, new Float32Array(mul(current.clip, layer.layerToWorld)));
+      }
       gl.drawElements(gl.TRIANGLES, INDICES_PER_QUAD * layer.count, gl.UNSIGNED_INT, INDICES_PER_QUAD * layer.first * 4);
     }
     gl.bindVertexArray(null);

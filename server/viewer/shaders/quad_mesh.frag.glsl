@@ -4,3 +4,7 @@
 // dropped; alpha 1 marks covered pixels (the page clears to 0 and counts the rest as holes).
 precision highp float;
 #include "quad_mesh_fragment.glsl"
+void main() {
+    f_color = vec4(layer_colour(), 1.0);
+    f_depth = -v_view_pos.z;
+}
