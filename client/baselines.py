@@ -27,11 +27,12 @@ import moderngl
 import numpy as np
 
 from quadcast.client.method import Coverage, MethodClient, PixelCoverage
-from quadcast.codec.decoder import AtlasDecoder
+from quadcast.codec.decoder import AtlasDecoder, YuvPicture
 from quadcast.protocol.depth import DEFAULT_MAX_DEPTH_PIXELS, decode_depth
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload, Method
 from quadcast.protocol.methods import MAX_ATLAS_VIEWS, meshwarp_render_size
+from quadcast.render.atlas_texture import AtlasTexture
 from quadcast.render.camera import Camera, Frustum, Pose, gl_matrix
 from quadcast.render.gl import RENDER_DIR, gl_context, program, set_uniforms
 from quadcast.render.renderer import read_texture
@@ -94,9 +95,10 @@ class _BaselineClient(MethodClient):
         Frustum.symmetric(self.fovy, 1.0)
         Frustum.symmetric(self.server_fovy, 1.0)  # both raise ValueError for a bad field of view
         self.ctx = ctx or gl_context()
-        self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * self.width * self.height)
+        # planes, converted to RGBA on the GPU (render/atlas_texture.py), GL's bottom row first as the shaders take it
+        self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * self.width * self.height, output="yuv420")
         self.frame: _Frame | None = None
-        self._frame_tex: moderngl.Texture | None = None
+        self._frame_tex = AtlasTexture(self.ctx, bottom_first=True)
         self._out = self.ctx.texture((self.width, self.height), 4, dtype="f1")
         self._out_depth = self.ctx.depth_renderbuffer((self.width, self.height))
         self._fbo = self.ctx.framebuffer([self._out], self._out_depth)
@@ -129,9 +131,9 @@ class _BaselineClient(MethodClient):
         tex.write(np.ascontiguousarray(img[::-1]).tobytes())  # GL's first row is the bottom one
         return tex
 
-    def _commit_color(self, payload: FramePayload, pose: Pose, rgb: np.ndarray) -> None:
-        self._frame_tex = self._upload_texture(self._frame_tex, rgb, 3, "f1", moderngl.LINEAR)
-        self.frame = _Frame(pose, rgb.shape[1], rgb.shape[0], int(payload.frame_id))
+    def _commit_color(self, payload: FramePayload, pose: Pose, picture: YuvPicture) -> None:
+        self._frame_tex.write(picture)
+        self.frame = _Frame(pose, picture.width, picture.height, int(payload.frame_id))
 
     def _draw_atw(self, pose: Pose) -> None:
         h = rotation_homography(self.frame.pose, self.frame_frustum(), pose, self.camera(pose).frustum)
@@ -186,9 +188,9 @@ class ATWClient(_BaselineClient):
 
     def receive(self, payload: FramePayload) -> None:
         pose = _payload_pose(payload, self.method)
-        rgb = self.decoder.decode(payload.video, payload.frame_id)  # raises VideoError
-        if rgb is not None:
-            self._commit_color(payload, pose, rgb)
+        picture = self.decoder.decode(payload.video, payload.frame_id)  # raises VideoError
+        if picture is not None:
+            self._commit_color(payload, pose, picture)
 
     def _draw(self, pose: Pose) -> None:
         self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
@@ -216,17 +218,17 @@ class MeshWarpClient(_BaselineClient):
     def receive(self, payload: FramePayload) -> None:
         pose = _payload_pose(payload, self.method)
         # Video first (raises VideoError): the decoder follows the stream even if the depth turns out bad.
-        rgb = self.decoder.decode(payload.video, payload.frame_id)
+        picture = self.decoder.decode(payload.video, payload.frame_id)
         depth = decode_depth(payload.geometry, max_pixels=self.max_depth_pixels, size=self.depth_size)
-        if rgb is None:
+        if picture is None:
             return
-        if depth.shape != rgb.shape[:2]:
+        if depth.shape != (picture.height, picture.width):
             raise ProtocolError(f"payload.geometry: depth map is {depth.shape[1]}x{depth.shape[0]}, "
-                                f"the video frame {rgb.shape[1]}x{rgb.shape[0]}")
+                                f"the video frame {picture.width}x{picture.height}")
         if min(depth.shape) < 2:
             raise ProtocolError(f"payload.geometry: depth map {depth.shape[1]}x{depth.shape[0]} is too small "
                                 "for a mesh")
-        self._commit_color(payload, pose, rgb)
+        self._commit_color(payload, pose, picture)
         self._depth_tex = self._upload_texture(self._depth_tex, np.where(np.isfinite(depth), depth, 0.0)
                                                .astype(np.float32), 1, "f4", moderngl.NEAREST)
 

@@ -14,6 +14,7 @@ from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload, FrameType, Method
 from quadcast.protocol.methods import MAX_ATLAS_VIEWS
 from quadcast.protocol.quads import LayerKind, QuadFrame, decode_quad_frame
+from quadcast.render.atlas_texture import AtlasTexture
 from quadcast.render.camera import DEFAULT_IPD_M, Camera, Frustum, Pose
 from quadcast.render.gl import gl_context
 from quadcast.render.quadcache import QuadCache
@@ -41,8 +42,9 @@ class QuasarClient(MethodClient):
         self.width, self.height = width, height
         self.frustum = Frustum.symmetric(fovy_deg, width / height)
         # budgets from the size this client asked for: quad layers of that size, an atlas of at most
-        # MAX_ATLAS_VIEWS such pictures (anything declaring more is refused before it is decoded)
-        self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * width * height, rgba=True)   # as GL takes it
+        # MAX_ATLAS_VIEWS such pictures (anything declaring more is refused before it is decoded); its planes are
+        # converted to RGBA on the GPU (render/atlas_texture.py)
+        self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * width * height, output="yuv420")
         self.mesh = QuadMesh(self.ctx)
         self.view = MeshView(self.ctx, width, height)
         self.max_quads = max_quads
@@ -50,7 +52,8 @@ class QuasarClient(MethodClient):
         self.reference_id = -1
         self.reference_camera: Camera | None = None
         self.far_layers: list[MeshLayer] = []
-        self.atlas: moderngl.Texture | None = None
+        self.atlas_texture = AtlasTexture(self.ctx)
+        self.atlas: moderngl.Texture | None = None   # atlas_texture's texture, once a frame arrived
         self._needs_reference = True
         self.last_frame_id = -1
         self.stats: dict = {}
@@ -87,7 +90,7 @@ class QuasarClient(MethodClient):
         if image is None:
             self._needs_reference = True
             raise VideoError(f"frame {payload.frame_id}: the video decoder is waiting for a keyframe")
-        layers = self._check_layers(frame, image.shape[1], image.shape[0])
+        layers = self._check_layers(frame, image.width, image.height)
 
         t0 = time.perf_counter()
         kinds = [l.kind for l in frame.layers]
@@ -112,14 +115,9 @@ class QuasarClient(MethodClient):
         ms["quad_update"] = (time.perf_counter() - t0) * 1e3
 
         t0 = time.perf_counter()
-        h, w = image.shape[:2]
-        if self.atlas is None or self.atlas.size != (w, h):
-            if self.atlas is not None:
-                self.atlas.release()
-            self.atlas = self.ctx.texture((w, h), 4)
-            self.atlas.filter = (moderngl.LINEAR, moderngl.LINEAR)
-        self.atlas.write(np.ascontiguousarray(image))
-        self.mesh.build(mesh_layers, (w, h))
+        self.atlas_texture.write(image)
+        self.atlas = self.atlas_texture.texture
+        self.mesh.build(mesh_layers, (image.width, image.height))
         # a residual frame's revealed layer is cut from its own view of the scene, whose colour the atlas holds:
         # the cached surfaces that view saw are drawn with it too (QuadMesh.set_current_view)
         revealed = [(l, cam) for l, cam in layers if l.kind == LayerKind.REVEALED]

@@ -20,6 +20,7 @@ access unit, which must carry its SPS and PPS in-band (as those of
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from types import TracebackType
 
 import av
@@ -27,7 +28,11 @@ import numpy as np
 
 from quadcast.codec.nal import NAL_IDR_SLICE, nal_unit_types
 
-__all__ = ["VideoError", "AtlasDecoder"]
+__all__ = ["VideoError", "AtlasDecoder", "YuvPicture", "frame_to_rgb"]
+
+# FFmpeg's default YUV->RGB conversion repeats each chroma sample over its 2x2 pixels and dithers; with these flags
+# it interpolates chroma and rounds exactly (a monastery view's FLIP against its source at CRF 18: 0.053 -> 0.030).
+_ACCURATE = av.video.reformatter.Interpolation.FULL_CHR_H_INT | av.video.reformatter.Interpolation.ACCURATE_RND
 
 
 
@@ -48,21 +53,78 @@ def _new_codec(max_pixels: int | None = None) -> av.VideoCodecContext:
     return codec
 
 
+@dataclass(frozen=True)
+class YuvPicture:
+    """A decoded 8-bit 4:2:0 picture as its three planes (BT.601 limited range, top row first): ``y`` (height,
+    width), ``u`` and ``v`` (height / 2, width / 2, rounded up), uint8. What a GPU client uploads and converts
+    (render/atlas_texture.py); :meth:`to_rgb` converts on the CPU."""
+
+    y: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+    def __post_init__(self) -> None:
+        h, w = self.y.shape
+        chroma = ((h + 1) // 2, (w + 1) // 2)
+        for name in ("y", "u", "v"):
+            plane = getattr(self, name)
+            if not isinstance(plane, np.ndarray) or plane.dtype != np.uint8 or plane.ndim != 2:
+                raise ValueError(f"YuvPicture.{name} must be a 2-D uint8 array")
+        if self.u.shape != chroma or self.v.shape != chroma:
+            raise ValueError(f"YuvPicture: chroma planes must be {chroma[1]}x{chroma[0]} for {w}x{h} luma, "
+                             f"got {self.u.shape[1]}x{self.u.shape[0]} and {self.v.shape[1]}x{self.v.shape[0]}")
+
+    @property
+    def width(self) -> int:
+        return self.y.shape[1]
+
+    @property
+    def height(self) -> int:
+        return self.y.shape[0]
+
+    def to_rgb(self, rgba: bool = False) -> np.ndarray:
+        """(height, width, 3) RGB uint8 ((height, width, 4) with alpha 255), chroma interpolated."""
+        frame = av.VideoFrame(self.width, self.height, "yuv420p")
+        for plane, data in zip(frame.planes, (self.y, self.u, self.v)):
+            rows = np.zeros((plane.height, plane.line_size), np.uint8)
+            rows[:, :plane.width] = data
+            plane.update(rows)
+        return frame_to_rgb(frame, rgba)
+
+
+def frame_to_rgb(frame: av.VideoFrame, rgba: bool = False) -> np.ndarray:
+    """A decoded PyAV picture as (height, width, 3) RGB uint8 ((height, width, 4) RGBA), chroma interpolated."""
+    # One thread: FFmpeg's sliced YUV->RGB conversion writes a few wrong pixels, differently from run to run,
+    # at a slice edge when the width is not a multiple of 16 (680: 8-16 of 220,000 in a 680x324 picture).
+    out = frame.reformat(format="rgba" if rgba else "rgb24", src_colorspace="ITU601", src_color_range="MPEG",
+                         interpolation=_ACCURATE, threads=1).to_ndarray()
+    return np.ascontiguousarray(out, dtype=np.uint8)
+
+
+def _planes(frame: av.VideoFrame) -> YuvPicture:
+    planes = [np.frombuffer(p, np.uint8).reshape(p.height, p.line_size)[:, :p.width].copy() for p in frame.planes]
+    return YuvPicture(*planes)
+
+
 class AtlasDecoder:
     """Decoder for the H.264 atlas stream produced by ``server.video.AtlasEncoder``.
 
     Call :meth:`decode` once per received access unit.
     """
 
-    def __init__(self, max_pixels: int | None = None, rgba: bool = False) -> None:
+    OUTPUTS = ("rgb", "rgba", "yuv420")
+
+    def __init__(self, max_pixels: int | None = None, output: str = "rgb") -> None:
         """``max_pixels``: the largest picture accepted (width x height), e.g. what the session asked for; a
-        stream declaring a bigger one fails with VideoError before its picture is allocated. ``rgba``: pictures
-        come out as (height, width, 4) RGBA, alpha 255 -- the same RGB, in the layout a GL texture takes without
-        converting (Mesa converts 3-component uploads: 3.5 ms against 0.5 for a 1920x938 atlas)."""
+        stream declaring a bigger one fails with VideoError before its picture is allocated. ``output``: pictures
+        come out as (height, width, 3) RGB ("rgb"), (height, width, 4) RGBA with alpha 255 ("rgba"), or as their
+        planes ("yuv420", a :class:`YuvPicture`: no conversion on the CPU, for a client that converts on the GPU)."""
         if max_pixels is not None and max_pixels < 1:
             raise ValueError(f"AtlasDecoder: max_pixels must be >= 1, got {max_pixels}")
+        if output not in self.OUTPUTS:
+            raise ValueError(f"AtlasDecoder: output must be one of {', '.join(self.OUTPUTS)}, got {output!r}")
         self.max_pixels = max_pixels
-        self.pixel_format = "rgba" if rgba else "rgb24"
+        self.output = output
         self._codec: av.VideoCodecContext | None = _new_codec(max_pixels)
         self._needs_keyframe = True
         self._last_sequence: int | None = None
@@ -74,7 +136,7 @@ class AtlasDecoder:
         """True until an IDR has been decoded, and again after any decode error."""
         return self._needs_keyframe
 
-    def decode(self, data: bytes, sequence: int | None = None) -> np.ndarray | None:
+    def decode(self, data: bytes, sequence: int | None = None) -> np.ndarray | YuvPicture | None:
         """Decode one Annex-B access unit.
 
         Args:
@@ -85,8 +147,8 @@ class AtlasDecoder:
                 (reordered) is refused the same way.
 
         Returns:
-            The decoded atlas as a uint8 array (height, width, 3), RGB, top row
-            first ((height, width, 4) RGBA with ``rgba``); or None when the access unit yields no picture, including
+            The decoded atlas, top row first: a uint8 array (height, width, 3) RGB, (height, width, 4) RGBA, or a
+            :class:`YuvPicture`, as ``output`` says; or None when the access unit yields no picture, including
             non-IDR access units dropped while :attr:`needs_keyframe` is True.
 
         Raises:
@@ -102,7 +164,7 @@ class AtlasDecoder:
         finally:
             self.decode_ms = (time.perf_counter() - start) * 1000.0
 
-    def _decode(self, data: bytes, sequence: int | None) -> np.ndarray | None:
+    def _decode(self, data: bytes, sequence: int | None) -> np.ndarray | YuvPicture | None:
         if self._codec is None:
             raise RuntimeError("AtlasDecoder is closed")
         if not isinstance(data, (bytes, bytearray, memoryview)):
@@ -140,16 +202,17 @@ class AtlasDecoder:
                 f"H.264 access unit decoded with errors ({len(data)} bytes, "
                 f"NAL types {nal_types}): picture is truncated or corrupt"
             )
+        if frame.format.name != "yuv420p":
+            raise self._fail(f"decoded picture is {frame.format.name}, not the 8-bit 4:2:0 (yuv420p) the atlas "
+                             "stream carries")
         try:
-            # One thread: FFmpeg's sliced YUV->RGB conversion writes a few wrong pixels, differently from run to run,
-            # at a slice edge when the width is not a multiple of 16 (680: 8-16 of 220,000 in a 680x324 picture).
-            rgb = frame.reformat(format=self.pixel_format, threads=1).to_ndarray()
+            picture = _planes(frame) if self.output == "yuv420" else frame_to_rgb(frame, self.output == "rgba")
         except Exception as exc:
-            raise self._fail(f"decoded picture could not be converted to RGB: {exc}") from exc
+            raise self._fail(f"decoded picture could not be converted: {exc}") from exc
         if is_idr:
             self._needs_keyframe = False
         self._last_sequence = sequence
-        return np.ascontiguousarray(rgb, dtype=np.uint8)
+        return picture
 
     def _fail(self, message: str) -> VideoError:
         """Drop decoder state, wait for the next IDR, and build the error to raise."""

@@ -56,6 +56,9 @@ X264_PRESETS = (
 # values written to the VUI: BT.601 (SMPTE 170M), limited ("MPEG") range.
 _AVCOL_SMPTE170M = 6
 _AVCOL_RANGE_MPEG = 1
+# RGB -> 4:2:0 conversion flags: chroma from every input column, exact rounding
+_CHROMA_INPUT = (av.video.reformatter.Interpolation.FULL_CHR_H_INP
+                 | av.video.reformatter.Interpolation.ACCURATE_RND)
 
 
 @dataclass(frozen=True)
@@ -217,7 +220,11 @@ class AtlasEncoder:
         start = time.perf_counter()
         layout = "rgb24" if rgb.shape[2] == 3 else "rgba"
         frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format=layout)
-        frame = frame.reformat(format="yuv420p", dst_colorspace="ITU601", dst_color_range="MPEG")
+        # exact rounding and every input pixel's chroma (FFmpeg's default drops half the columns' chroma and
+        # rounds coarsely): no slower, and with the client's interpolated conversion a monastery view's FLIP
+        # against its source at CRF 18 is 0.026 instead of 0.030
+        frame = frame.reformat(format="yuv420p", dst_colorspace="ITU601", dst_color_range="MPEG",
+                               interpolation=_CHROMA_INPUT)
         frame.pts = self._frame_index
         frame.pict_type = PictureType.I if keyframe else PictureType.NONE
         packets = self._codec.encode(frame)

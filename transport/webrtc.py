@@ -217,8 +217,9 @@ class WebRtcChannel(Channel):
             self._incoming.put_nowait(Frame(join_video(rest, self._reencode(picture))))
 
     def _reencode(self, picture) -> bytes:
+        from quadcast.codec.decoder import frame_to_rgb
         from quadcast.codec.encoder import AtlasEncoder, VideoSettings
-        rgb = picture.reformat(format="rgb24", threads=1).to_ndarray()   # one thread: see codec/decoder.py
+        rgb = frame_to_rgb(picture)
         h, w = rgb.shape[:2]
         if self._encoder is None or (self._encoder.width, self._encoder.height) != (w, h):
             if self._encoder is not None:
