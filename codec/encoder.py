@@ -172,7 +172,10 @@ class AtlasEncoder:
         codec.color_range = _AVCOL_RANGE_MPEG
 
         keyint = "infinite" if s.gop is None else str(s.gop)
-        x264_params = [f"keyint={keyint}", "scenecut=0", "bframes=0", "repeat-headers=1"]
+        # chromaloc=1: the VUI says chroma sits at the centre of each 2x2 block, where the RGB conversion
+        # (_CHROMA_INPUT) puts it and the clients' conversion reads it (render/yuv_to_rgba.frag.glsl); H.264's
+        # default when unsaid is left-sited
+        x264_params = [f"keyint={keyint}", "scenecut=0", "bframes=0", "repeat-headers=1", "chromaloc=1"]
         options = {"preset": s.preset, "tune": "zerolatency", "forced-idr": "1"}
         if s.bitrate_kbps is not None:
             kbps = int(s.bitrate_kbps)
