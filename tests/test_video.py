@@ -251,7 +251,7 @@ def test_rgba_and_planes_decoding_give_the_same_picture():
 
 def test_colour_conversion_interpolates_chroma():
     """A rendered-like picture comes back closer to its source than through FFmpeg's default conversions (chroma
-    repeated and dithered): at CRF 0 the conversions are nearly all the error."""
+    repeated, rounded coarsely): at CRF 0 the conversions are nearly all the error."""
     import av
 
     source = textured_frame(0)
@@ -263,6 +263,21 @@ def test_colour_conversion_interpolates_chroma():
         .reformat(format="rgb24", src_colorspace="ITU601", src_color_range="MPEG", threads=1).to_ndarray()
     err = lambda img: np.abs(img.astype(int) - source).mean()  # noqa: E731
     assert err(ours) < 0.7 * err(default), (err(ours), err(default))   # measured: 0.97 against 1.58 levels
+
+
+def test_a_decoded_picture_re_encodes_from_its_planes():
+    """The encoder takes a YuvPicture as it is (the WebRTC receiver re-encodes decoded pictures so): decoded
+    again, the planes come back as they went in, to the coding error, with no colour conversion between."""
+    with AtlasEncoder(WIDTH, HEIGHT, VideoSettings(threads=1)) as encoder:
+        unit = encoder.encode(textured_frame(0), keyframe=True).data
+    picture = AtlasDecoder(output="yuv420").decode(unit, 0)
+    with AtlasEncoder(WIDTH, HEIGHT, VideoSettings(crf=1, threads=1)) as encoder:
+        again = AtlasDecoder(output="yuv420").decode(encoder.encode(picture, keyframe=True).data, 0)
+        with pytest.raises(ValueError, match=f"atlas picture must be {WIDTH}x{HEIGHT}; got 8x4"):
+            encoder.encode(YuvPicture(np.zeros((4, 8), np.uint8), np.zeros((2, 4), np.uint8),
+                                      np.zeros((2, 4), np.uint8)), keyframe=True)
+    for a, b in ((picture.y, again.y), (picture.u, again.u), (picture.v, again.v)):
+        assert np.abs(a.astype(int) - b).mean() < 0.5
 
 
 def test_planes_are_checked():

@@ -217,15 +217,16 @@ class WebRtcChannel(Channel):
             self._incoming.put_nowait(Frame(join_video(rest, self._reencode(picture))))
 
     def _reencode(self, picture) -> bytes:
-        from quadcast.codec.decoder import frame_to_rgb
         from quadcast.codec.encoder import AtlasEncoder, VideoSettings
-        rgb = frame_to_rgb(picture)
-        h, w = rgb.shape[:2]
+        from quadcast.codec.picture import YuvPicture, frame_to_rgb
+        # aiortc's decoder gives 4:2:0 pictures: coded again as they are, without a round trip through RGB
+        image = YuvPicture.from_frame(picture) if picture.format.name == "yuv420p" else frame_to_rgb(picture)
+        w, h = picture.width, picture.height
         if self._encoder is None or (self._encoder.width, self._encoder.height) != (w, h):
             if self._encoder is not None:
                 self._encoder.close()
             self._encoder = AtlasEncoder(w, h, VideoSettings(crf=REENCODE_CRF))
-        return self._encoder.encode(rgb, keyframe=True).data
+        return self._encoder.encode(image, keyframe=True).data
 
     async def recv(self) -> Message | None:
         if self.closed and self._incoming.empty():
