@@ -27,7 +27,8 @@ import moderngl
 import numpy as np
 
 from quadcast.client.method import Coverage, MethodClient, PixelCoverage
-from quadcast.codec.decoder import AtlasDecoder, YuvPicture
+from quadcast.codec.decoder import AtlasDecoder
+from quadcast.codec.picture import YuvPicture
 from quadcast.protocol.depth import DEFAULT_MAX_DEPTH_PIXELS, decode_depth
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload, Method

@@ -53,12 +53,16 @@ class QuasarClient(MethodClient):
         self.reference_camera: Camera | None = None
         self.far_layers: list[MeshLayer] = []
         self.atlas_texture = AtlasTexture(self.ctx)
-        self.atlas: moderngl.Texture | None = None   # atlas_texture's texture, once a frame arrived
         self._needs_reference = True
         self.last_frame_id = -1
         self.stats: dict = {}
         self._stereo: MeshStereo | None = None  # made on the first stereo frame
         self._coverage = Coverage.empty(width, height)
+
+    @property
+    def atlas(self) -> moderngl.Texture | None:
+        """The decoded atlas (RGBA), once a frame arrived."""
+        return self.atlas_texture.texture
 
     @property
     def needs_reference(self) -> bool:
@@ -116,7 +120,6 @@ class QuasarClient(MethodClient):
 
         t0 = time.perf_counter()
         self.atlas_texture.write(image)
-        self.atlas = self.atlas_texture.texture
         self.mesh.build(mesh_layers, (image.width, image.height))
         # a residual frame's revealed layer is cut from its own view of the scene, whose colour the atlas holds:
         # the cached surfaces that view saw are drawn with it too (QuadMesh.set_current_view)

@@ -28,7 +28,7 @@ import numpy as np
 from quadcast.codec.nal import NAL_IDR_SLICE, nal_unit_types
 from quadcast.codec.picture import YuvPicture, frame_to_rgb
 
-__all__ = ["VideoError", "AtlasDecoder", "YuvPicture", "frame_to_rgb"]
+__all__ = ["VideoError", "AtlasDecoder"]
 
 
 class VideoError(ValueError):
@@ -54,13 +54,14 @@ class AtlasDecoder:
     Call :meth:`decode` once per received access unit.
     """
 
-    OUTPUTS = ("rgb", "rgba", "yuv420")
+    OUTPUTS = ("rgb", "yuv420")
 
     def __init__(self, max_pixels: int | None = None, output: str = "rgb") -> None:
         """``max_pixels``: the largest picture accepted (width x height), e.g. what the session asked for; a
         stream declaring a bigger one fails with VideoError before its picture is allocated. ``output``: pictures
-        come out as (height, width, 3) RGB ("rgb"), (height, width, 4) RGBA with alpha 255 ("rgba"), or as their
-        planes ("yuv420", a :class:`YuvPicture`: no conversion on the CPU, for a client that converts on the GPU)."""
+        come out as (height, width, 3) RGB ("rgb", converted by FFmpeg with interpolated chroma) or as their planes
+        ("yuv420", a :class:`~quadcast.codec.picture.YuvPicture`: no conversion on the CPU, for a client that
+        converts on the GPU, render/atlas_texture.py)."""
         if max_pixels is not None and max_pixels < 1:
             raise ValueError(f"AtlasDecoder: max_pixels must be >= 1, got {max_pixels}")
         if output not in self.OUTPUTS:
@@ -89,8 +90,8 @@ class AtlasDecoder:
                 (reordered) is refused the same way.
 
         Returns:
-            The decoded atlas, top row first: a uint8 array (height, width, 3) RGB, (height, width, 4) RGBA, or a
-            :class:`YuvPicture`, as ``output`` says; or None when the access unit yields no picture, including
+            The decoded atlas, top row first: a uint8 array (height, width, 3) RGB or a :class:`YuvPicture`, as
+            ``output`` says; or None when the access unit yields no picture, including
             non-IDR access units dropped while :attr:`needs_keyframe` is True.
 
         Raises:
@@ -148,7 +149,7 @@ class AtlasDecoder:
             raise self._fail(f"decoded picture is {frame.format.name}, not the 8-bit 4:2:0 (yuv420p) the atlas "
                              "stream carries")
         try:
-            picture = YuvPicture.from_frame(frame) if self.output == "yuv420" else frame_to_rgb(frame, self.output == "rgba")
+            picture = YuvPicture.from_frame(frame) if self.output == "yuv420" else frame_to_rgb(frame)
         except Exception as exc:
             raise self._fail(f"decoded picture could not be converted: {exc}") from exc
         if is_idr:

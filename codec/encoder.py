@@ -193,43 +193,43 @@ class AtlasEncoder:
         """Number of frames encoded so far (the next frame's ``frame_index``)."""
         return self._frame_index
 
-    def encode(self, rgb: np.ndarray | YuvPicture, *, keyframe: bool) -> EncodedFrame:
+    def encode(self, image: np.ndarray | YuvPicture, *, keyframe: bool) -> EncodedFrame:
         """Encode one atlas image into exactly one H.264 access unit.
 
         Args:
-            rgb: uint8 array of shape (height, width, 3), RGB, top row first; or (height, width, 4), RGBA
+            image: uint8 array of shape (height, width, 3), RGB, top row first; or (height, width, 4), RGBA
                 (alpha ignored), as a GPU texture reads back -- converted to the same 4:2:0 planes, without
                 the copy that dropping the alpha channel would take; or a :class:`YuvPicture` of this size,
                 coded as it is (a decoded picture re-encoded without converting its colour twice).
             keyframe: force this frame to be an IDR picture.
 
         Raises:
-            ValueError: ``rgb`` is not a uint8 (height, width, 3 or 4) array nor a YuvPicture of this size.
+            ValueError: ``image`` is not a uint8 (height, width, 3 or 4) array nor a YuvPicture of this size.
             RuntimeError: the encoder is closed, or libx264 did not return
                 exactly one access unit (a broken low-latency configuration).
         """
         if self._codec is None:
             raise RuntimeError("AtlasEncoder is closed")
         expected = (self.height, self.width, 3)
-        if isinstance(rgb, YuvPicture):
-            if (rgb.width, rgb.height) != (self.width, self.height):
-                raise ValueError(f"atlas picture must be {self.width}x{self.height}; got {rgb.width}x{rgb.height}")
+        if isinstance(image, YuvPicture):
+            if (image.width, image.height) != (self.width, self.height):
+                raise ValueError(f"atlas picture must be {self.width}x{self.height}; got {image.width}x{image.height}")
             start = time.perf_counter()
-            frame = rgb.to_frame()
+            frame = image.to_frame()
         else:
-            if not isinstance(rgb, np.ndarray):
+            if not isinstance(image, np.ndarray):
                 raise ValueError(
                     f"atlas image must be a numpy uint8 array of shape {expected}; "
-                    f"got {type(rgb).__name__}"
+                    f"got {type(image).__name__}"
                 )
-            if rgb.shape not in (expected, expected[:2] + (4,)) or rgb.dtype != np.uint8:
+            if image.shape not in (expected, expected[:2] + (4,)) or image.dtype != np.uint8:
                 raise ValueError(
                     f"atlas image must be uint8 with shape {expected} (height, width, RGB) or "
-                    f"{expected[:2] + (4,)} (RGBA); got shape {rgb.shape} dtype {rgb.dtype}"
+                    f"{expected[:2] + (4,)} (RGBA); got shape {image.shape} dtype {image.dtype}"
                 )
             start = time.perf_counter()
-            layout = "rgb24" if rgb.shape[2] == 3 else "rgba"
-            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format=layout)
+            layout = "rgb24" if image.shape[2] == 3 else "rgba"
+            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format=layout)
             # exact rounding and every input pixel's chroma (FFmpeg's default drops half the columns' chroma and
             # rounds coarsely): no slower, and with the client's interpolated conversion a monastery view through
             # the conversions alone has FLIP 0.026 against its source instead of 0.030

@@ -63,15 +63,15 @@ class YuvPicture:
             plane.update(rows)
         return frame
 
-    def to_rgb(self, rgba: bool = False) -> np.ndarray:
-        """(height, width, 3) RGB uint8 ((height, width, 4) with alpha 255), chroma interpolated."""
-        return frame_to_rgb(self.to_frame(), rgba)
+    def to_rgb(self) -> np.ndarray:
+        """(height, width, 3) RGB uint8, chroma interpolated."""
+        return frame_to_rgb(self.to_frame())
 
 
-def frame_to_rgb(frame: av.VideoFrame, rgba: bool = False) -> np.ndarray:
-    """A decoded PyAV picture as (height, width, 3) RGB uint8 ((height, width, 4) RGBA), chroma interpolated."""
+def frame_to_rgb(frame: av.VideoFrame) -> np.ndarray:
+    """A decoded PyAV picture as (height, width, 3) RGB uint8, chroma interpolated."""
     # One thread: FFmpeg's sliced YUV->RGB conversion writes a few wrong pixels, differently from run to run,
     # at a slice edge when the width is not a multiple of 16 (680: 8-16 of 220,000 in a 680x324 picture).
-    out = frame.reformat(format="rgba" if rgba else "rgb24", src_colorspace="ITU601", src_color_range="MPEG",
+    out = frame.reformat(format="rgb24", src_colorspace="ITU601", src_color_range="MPEG",
                          interpolation=_ACCURATE, threads=1).to_ndarray()
     return np.ascontiguousarray(out, dtype=np.uint8)

@@ -1,13 +1,13 @@
 """The decoded colour atlas as a GL texture: a 4:2:0 picture converted to RGBA on the GPU, once per frame.
 
 Every client samples its colour from one RGBA8 texture with linear filtering. :meth:`AtlasTexture.write` takes a
-decoded :class:`~quadcast.codec.decoder.YuvPicture` (three planes, 1.5 bytes a pixel to upload) and converts it in
+decoded :class:`~quadcast.codec.picture.YuvPicture` (three planes, 1.5 bytes a pixel to upload) and converts it in
 one full-screen pass (``yuv_to_rgba.frag.glsl``): BT.601 limited range, chroma interpolated bilinearly from its
 sample positions (the centre of each 2x2 block, where the encoder's conversion puts them). FFmpeg's fast conversion
 to RGB repeats each chroma sample over its 2x2 pixels and rounds coarsely instead; the error that adds was most of
-a frame's FLIP at the reference pose (0.049 of 0.053 for a monastery view at CRF 18). It also takes an RGB/RGBA
-array as it is, for callers that have one. (A compute pass converting a 2x2 block per invocation cost the same
-on llvmpipe: 11.2–14.9 against 10.8–11.3 ms for a 2040x1006 picture, upload to ``ctx.finish()``.)
+a frame's FLIP at the reference pose (0.049 of 0.053 for a monastery view at CRF 18). (A compute pass converting a
+2x2 block per invocation cost the same on llvmpipe: 11.2–14.9 against 10.8–11.3 ms for a 2040x1006 picture, upload
+to ``ctx.finish()``.)
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from quadcast.codec.decoder import YuvPicture
+from quadcast.codec.picture import YuvPicture
 from quadcast.render.gl import RENDER_DIR, program, set_uniforms
 
 __all__ = ["AtlasTexture"]
@@ -53,23 +53,11 @@ class AtlasTexture:
             self.texture.repeat_x = self.texture.repeat_y = False
         return self.texture
 
-    def write(self, picture: YuvPicture | np.ndarray) -> None:
-        """Hold `picture`: a YuvPicture, or a uint8 (H, W, 3|4) RGB(A) array, top row first. A YuvPicture is
-        converted by a draw into the texture's framebuffer, which stays bound: bind yours before drawing."""
-        if isinstance(picture, YuvPicture):
-            self._write_yuv(picture)
-            return
-        img = picture if isinstance(picture, np.ndarray) else np.empty(0)
-        if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] not in (3, 4) or min(img.shape[:2]) < 1:
-            raise ValueError(f"AtlasTexture.write: need a YuvPicture or a uint8 (H, W, 3|4) array, got "
-                             f"{img.dtype} {img.shape}")
-        if img.shape[2] == 3:
-            img = np.concatenate([img, np.full(img.shape[:2] + (1,), 255, np.uint8)], axis=2)
-        if self.bottom_first:
-            img = img[::-1]
-        self._target((img.shape[1], img.shape[0])).write(np.ascontiguousarray(img))
-
-    def _write_yuv(self, picture: YuvPicture) -> None:
+    def write(self, picture: YuvPicture) -> None:
+        """Hold `picture` (top row first), converted by a draw into the texture's framebuffer, which stays
+        bound: bind yours before drawing."""
+        if not isinstance(picture, YuvPicture):
+            raise ValueError(f"AtlasTexture.write: need a YuvPicture, got {type(picture).__name__}")
         chroma = np.empty(picture.u.shape + (2,), np.uint8)     # Cb and Cr side by side: one fetch for both
         chroma[..., 0], chroma[..., 1] = picture.u, picture.v
         sizes = [(picture.width, picture.height), (chroma.shape[1], chroma.shape[0])]

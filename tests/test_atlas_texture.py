@@ -18,9 +18,10 @@ def _source() -> np.ndarray:
                              100 + 60 * np.sin((x - y) / 13.0)], axis=-1), 0, 255).astype(np.uint8)
 
 
-def _picture():
-    with AtlasEncoder(W, H, VideoSettings(crf=0, threads=1)) as encoder:
-        unit = encoder.encode(_source(), keyframe=True).data
+def _picture(source: np.ndarray | None = None):
+    source = _source() if source is None else source
+    with AtlasEncoder(source.shape[1], source.shape[0], VideoSettings(crf=0, threads=1)) as encoder:
+        unit = encoder.encode(source, keyframe=True).data
     return AtlasDecoder(output="yuv420").decode(unit, 0)
 
 
@@ -50,26 +51,22 @@ def test_bottom_first_stores_the_rows_flipped(ctx):
     top.write(picture)
     bottom.write(picture)
     assert np.array_equal(_read(top)[::-1], _read(bottom))
-    rgb = picture.to_rgb()
-    top.write(rgb)                       # an RGB array is taken as it is
-    assert np.array_equal(_read(top)[..., :3], rgb)
-    bottom.write(rgb)
-    assert np.array_equal(_read(bottom)[::-1, :, :3], rgb)
     top.release()
     bottom.release()
 
 
 def test_a_new_size_replaces_the_texture(ctx):
     atlas = AtlasTexture(ctx)
-    atlas.write(np.zeros((4, 6, 3), np.uint8))
-    assert atlas.size == (6, 4)
+    small = _picture(_source()[:10, :16])
+    atlas.write(small)
+    assert atlas.size == (16, 10)
+    np.testing.assert_allclose(_read(atlas)[..., :3], small.to_rgb(), atol=6)
     atlas.write(_picture())
     assert atlas.size == (W, H)
     atlas.release()
 
 
-@pytest.mark.parametrize("bad", [np.zeros((4, 6), np.uint8), np.zeros((4, 6, 3), np.float32),
-                                 np.zeros((4, 6, 2), np.uint8), "picture"])
+@pytest.mark.parametrize("bad", [np.zeros((4, 6, 3), np.uint8), "picture"])
 def test_bad_input_is_a_clear_error(ctx, bad):
-    with pytest.raises(ValueError, match="AtlasTexture.write: need a YuvPicture or a uint8"):
+    with pytest.raises(ValueError, match="AtlasTexture.write: need a YuvPicture, got"):
         AtlasTexture(ctx).write(bad)
