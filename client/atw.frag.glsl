@@ -5,10 +5,9 @@
 // outside the frame with the closest edge pixel in that direction.
 // Alpha says what the pixel shows (client.method.PixelCoverage): 1 = the frame's content in this direction,
 // 0.5 = only the repeated edge pixel (outside the frame), 0 = nothing (the clear value).
-#include "sharp_texture.glsl"
+#include "atlas_colour.glsl"
 in vec2 v_uv;
 
-uniform sampler2D u_frame;  // decoded colour, bottom row first, linear filtering, clamp to edge
 uniform mat3 u_h;
 
 out vec4 f_color;
@@ -19,5 +18,6 @@ void main() {
     q.z = max(q.z, max(1e-6 * length(q.xy), 1e-30));
     vec2 uv = q.xy / q.z * 0.5 + 0.5;
     bool inside = in_front && all(greaterThanEqual(uv, vec2(0.0))) && all(lessThanEqual(uv, vec2(1.0)));
-    f_color = vec4(sharp_texture(u_frame, uv).rgb, inside ? 1.0 : 0.5);
+    // the frame's uv, bottom row first; atlas_colour's planes count rows from the top (clamped to the edge)
+    f_color = vec4(atlas_colour(vec2(uv.x, 1.0 - uv.y)), inside ? 1.0 : 0.5);
 }

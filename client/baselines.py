@@ -96,10 +96,10 @@ class _BaselineClient(MethodClient):
         Frustum.symmetric(self.fovy, 1.0)
         Frustum.symmetric(self.server_fovy, 1.0)  # both raise ValueError for a bad field of view
         self.ctx = ctx or gl_context()
-        # planes, converted to RGBA on the GPU (render/atlas_texture.py), GL's bottom row first as the shaders take it
+        # planes, sampled by the shaders (render/atlas_texture.py)
         self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * self.width * self.height, output="yuv420")
         self.frame: _Frame | None = None
-        self._frame_tex = AtlasTexture(self.ctx, bottom_first=True)
+        self._frame_tex = AtlasTexture(self.ctx)
         self._out = self.ctx.texture((self.width, self.height), 4, dtype="f1")
         self._out_depth = self.ctx.depth_renderbuffer((self.width, self.height))
         self._fbo = self.ctx.framebuffer([self._out], self._out_depth)
@@ -138,8 +138,7 @@ class _BaselineClient(MethodClient):
 
     def _draw_atw(self, pose: Pose) -> None:
         h = rotation_homography(self.frame.pose, self.frame_frustum(), pose, self.camera(pose).frustum)
-        self._frame_tex.use(0)
-        set_uniforms(self._atw, u_frame=0, u_h=_mat3(h))
+        set_uniforms(self._atw, u_h=_mat3(h), **self._frame_tex.use(0))
         self._fullscreen.render(moderngl.TRIANGLES, vertices=3)
 
     def _draw(self, pose: Pose) -> None:
@@ -254,9 +253,9 @@ class MeshWarpClient(_BaselineClient):
         ctx.depth_func = "<"
         cam = self.camera(pose, DISPLAY_NEAR, DISPLAY_FAR)
         mvp = cam.projection_matrix() @ cam.view_matrix() @ self.frame.pose.camera_to_world()
-        self._frame_tex.use(0)
-        self._depth_tex.use(1)
-        set_uniforms(self._mesh_prog, u_frame=0, u_depth=1, u_mvp=gl_matrix(mvp),
+        samplers = self._frame_tex.use(0)
+        self._depth_tex.use(2)
+        set_uniforms(self._mesh_prog, u_depth=2, **samplers, u_mvp=gl_matrix(mvp),
                      u_extents=self.frame_frustum().unit_extents)
         self._grid_vao(self.frame.width, self.frame.height).render(moderngl.TRIANGLES)
         ctx.disable(moderngl.DEPTH_TEST)

@@ -43,7 +43,7 @@ class QuasarClient(MethodClient):
         self.frustum = Frustum.symmetric(fovy_deg, width / height)
         # budgets from the size this client asked for: quad layers of that size, an atlas of at most
         # MAX_ATLAS_VIEWS such pictures (anything declaring more is refused before it is decoded); its planes are
-        # converted to RGBA on the GPU (render/atlas_texture.py)
+        # sampled as planes by the mesh's draws (render/atlas_texture.py)
         self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * width * height, output="yuv420")
         self.mesh = QuadMesh(self.ctx)
         self.view = MeshView(self.ctx, width, height)
@@ -60,9 +60,9 @@ class QuasarClient(MethodClient):
         self._coverage = Coverage.empty(width, height)
 
     @property
-    def atlas(self) -> moderngl.Texture | None:
-        """The decoded atlas (RGBA), once a frame arrived."""
-        return self.atlas_texture.texture
+    def atlas(self) -> AtlasTexture | None:
+        """The decoded atlas's planes, once a frame arrived."""
+        return self.atlas_texture if self.atlas_texture.size is not None else None
 
     @property
     def needs_reference(self) -> bool:

@@ -39,6 +39,7 @@ from typing import Callable, TypeVar
 import moderngl
 import numpy as np
 
+from quadcast.render.atlas_texture import AtlasTexture
 from quadcast.render.camera import DEFAULT_IPD_M, Camera, Pose, gl_matrix
 from quadcast.render.gl import RENDER_DIR, compute, program, set_uniforms
 from quadcast.render.quadmesh import MeshView, QuadMesh
@@ -485,7 +486,7 @@ class MeshStereo:
         dominant = head.with_pose(left if self.synth.dominant == "left" else right)
         return dominant, self.synth.other_eye(dominant)
 
-    def frame(self, mesh: QuadMesh, view: MeshView, atlas: moderngl.Texture, head: Camera, mode: str = "yoro",
+    def frame(self, mesh: QuadMesh, view: MeshView, atlas: AtlasTexture, head: Camera, mode: str = "yoro",
               with_rendered: bool = False) -> StereoFrame:
         """Both eyes of `head` from `mesh` (drawn with `atlas`) and the client's `view` (a MeshView of this size)."""
         if mode not in STEREO_MODES:

@@ -61,24 +61,29 @@ def read_glsl(path: str | Path, _seen: tuple = ()) -> str:
     return _INCLUDE.sub(include, path.read_text())
 
 
+def _with_defines(source: str, defines: tuple) -> str:
+    if not defines:
+        return source
+    head, rest = source.split("\n", 1)  # keep #version first
+    return head + "\n" + "".join(f"#define {k} {v}\n" for k, v in defines) + rest
+
+
 @functools.lru_cache(maxsize=None)
-def _program_cached(ctx: moderngl.Context, vertex: Path, fragment: Path | None) -> moderngl.Program:
-    return ctx.program(vertex_shader=read_glsl(vertex),
-                       fragment_shader=read_glsl(fragment) if fragment else None)
+def _program_cached(ctx: moderngl.Context, vertex: Path, fragment: Path | None, defines: tuple) -> moderngl.Program:
+    return ctx.program(vertex_shader=_with_defines(read_glsl(vertex), defines),
+                       fragment_shader=_with_defines(read_glsl(fragment), defines) if fragment else None)
 
 
-def program(ctx: moderngl.Context, vertex: str | Path, fragment: str | Path | None = None) -> moderngl.Program:
-    """A (cached) render program from shader files."""
-    return _program_cached(ctx, Path(vertex).resolve(), Path(fragment).resolve() if fragment else None)
+def program(ctx: moderngl.Context, vertex: str | Path, fragment: str | Path | None = None,
+            **defines) -> moderngl.Program:
+    """A (cached) render program from shader files, with optional `#define`s (in both stages)."""
+    return _program_cached(ctx, Path(vertex).resolve(), Path(fragment).resolve() if fragment else None,
+                           tuple(sorted(defines.items())))
 
 
 @functools.lru_cache(maxsize=None)
 def _compute_cached(ctx: moderngl.Context, path: Path, defines: tuple) -> moderngl.ComputeShader:
-    source = read_glsl(path)
-    if defines:
-        head, rest = source.split("\n", 1)  # keep #version first
-        source = head + "\n" + "".join(f"#define {k} {v}\n" for k, v in defines) + rest
-    return ctx.compute_shader(source)
+    return ctx.compute_shader(_with_defines(read_glsl(path), defines))
 
 
 def compute(ctx: moderngl.Context, path: str | Path, **defines) -> moderngl.ComputeShader:

@@ -15,7 +15,7 @@ void main() {
     if (clip.w > 0.0 && all(lessThan(abs(clip.xy), vec2(clip.w)))) {
         vec2 t = clip.xy / clip.w * 0.5 + 0.5;                                  // bottom row first, as GL renders
         vec2 uv = u_current_rect.xy + vec2(t.x, 1.0 - t.y) * u_current_rect.zw;   // the atlas: top row first
-        vec3 current = sharp_texture(u_atlas, clamp(uv, u_current_uv_rect.xy, u_current_uv_rect.zw)).rgb;
+        vec3 current = atlas_colour(clamp(uv, u_current_uv_rect.xy, u_current_uv_rect.zw));
         vec3 difference = abs(current - color);
         if (max(difference.r, max(difference.g, difference.b)) < CURRENT_AGREEMENT)
             color = mix(color, current, CURRENT_WEIGHT);

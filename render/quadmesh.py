@@ -23,6 +23,7 @@ import moderngl
 import numpy as np
 
 from quadcast.protocol.quads import QuadSet
+from quadcast.render.atlas_texture import AtlasTexture
 from quadcast.render.camera import Camera, gl_matrix
 from quadcast.render.gl import compute, program, set_uniforms
 from quadcast.render.quadcache import QuadSetEdit
@@ -182,10 +183,14 @@ class QuadMesh:
         self.runs = [compute(ctx, HERE / "quad_mesh_runs.comp", PASS=k) for k in range(5)]
         self.min_run_quads = MIN_RUN_QUADS   # 0 merges every layer; None none
         self._scratch_buffers: dict[str, moderngl.Buffer] = {}   # the runs' grid and lists (_scratch)
-        self.programs = {name: program(ctx, HERE / f"{vertex}.vert.glsl", HERE / f"{fragment}.frag.glsl")
+        # the colour draws sample the atlas's planes (atlas_colour.glsl); the "_rgb" ones an RGBA texture
+        self.programs = {name + suffix: program(ctx, HERE / f"{vertex}.vert.glsl", HERE / f"{fragment}.frag.glsl",
+                                                **defines)
                          for name, vertex, fragment in (("colour", "quad_mesh", "quad_mesh"),
                                                         ("depth", "quad_mesh", "quad_mesh_depth"),
-                                                        ("refresh", "quad_mesh_refresh", "quad_mesh_refresh"))}
+                                                        ("refresh", "quad_mesh_refresh", "quad_mesh_refresh"))
+                         for suffix, defines in (("", {}), ("_rgb", {"ATLAS_RGB": 1}))
+                         if name != "depth" or not suffix}
         self.current: CurrentView | None = None
         self._buffers: list[_LayerBuffers] = []
         self.layers: list[tuple[MeshLayer, _LayerBuffers]] = []
@@ -363,25 +368,32 @@ class QuadMesh:
         cache's own)."""
         self.current = None if camera is None else CurrentView(camera, tuple(atlas_rect))
 
-    def draw(self, camera: Camera, atlas: moderngl.Texture | None) -> None:
-        """Render the mesh from `camera` into the bound framebuffer (depth test on): colour from `atlas` and view
-        depth into its two targets, or, without an atlas, the view depth alone into its one target."""
+    def draw(self, camera: Camera, atlas: AtlasTexture | moderngl.Texture | None) -> None:
+        """Render the mesh from `camera` into the bound framebuffer (depth test on): colour from `atlas` (the
+        decoded planes, or an RGBA texture with linear filtering) and view depth into its two targets, or, without
+        an atlas, the view depth alone into its one target."""
         current = self.current if atlas is not None else None
         view = camera.view_matrix()
-        names = ("colour", "refresh") if atlas is not None else ("depth",)
+        suffix = "_rgb" if isinstance(atlas, moderngl.Texture) else ""
+        names = ("colour" + suffix, "refresh" + suffix) if atlas is not None else ("depth",)
+        samplers = {}
+        if isinstance(atlas, AtlasTexture):
+            samplers = atlas.use(0)
+        elif atlas is not None:
+            atlas.use(0)
+            samplers = {"u_atlas": 0}
         for name in names:
             set_uniforms(self.programs[name], u_proj=gl_matrix(camera.projection_matrix()),
-                         u_max_depth=0.999 * camera.frustum.far, u_atlas=0)
-        if atlas is not None:
-            atlas.use(0)
+                         u_max_depth=0.999 * camera.frustum.far, **samplers)
         if current is not None:
             x, y, w, h = current.atlas_rect
             aw, ah = atlas.size
-            set_uniforms(self.programs["refresh"], u_current_rect=(x / aw, y / ah, w / aw, h / ah),
+            set_uniforms(self.programs["refresh" + suffix], u_current_rect=(x / aw, y / ah, w / aw, h / ah),
                          u_current_uv_rect=uv_rect(current.atlas_rect, atlas.size))
         for layer, buf in self.layers:
             name = "depth" if atlas is None else "refresh" if current is not None and layer.cached else "colour"
-            prog = self.programs[name]
+            key = name if atlas is None else name + suffix
+            prog = self.programs[key]
             if atlas is not None:
                 set_uniforms(prog, u_uv_rect=uv_rect(layer.atlas_rect, atlas.size))
             set_uniforms(prog, u_layer_to_view=gl_matrix(view @ layer.camera.pose.camera_to_world()),
@@ -389,7 +401,7 @@ class QuadMesh:
             if name == "refresh":
                 set_uniforms(prog, u_layer_to_current=gl_matrix(current.camera.view_projection()
                                                                 @ layer.camera.pose.camera_to_world()))
-            buf.draw(name)
+            buf.draw(key)
 
 
 class MeshView:
@@ -409,7 +421,7 @@ class MeshView:
         self.fbo = ctx.framebuffer(targets, self.depth)
         self.clear_color = clear_color
 
-    def render(self, mesh: QuadMesh, camera: Camera, atlas: moderngl.Texture | None = None,
+    def render(self, mesh: QuadMesh, camera: Camera, atlas: AtlasTexture | moderngl.Texture | None = None,
                cull: CullFn | None = None) -> None:
         """Clear and draw `mesh` from `camera` (depth test LESS), coloured from `atlas` (none for a depth-only
         view). `cull` (see `quadcast.render.renderer.CullFn`) restricts the draw to the pixels it leaves at depth

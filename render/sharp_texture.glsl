@@ -7,10 +7,13 @@
 #ifndef SHARPNESS
 #define SHARPNESS 1.5
 #endif
-vec4 sharp_texture(sampler2D tex, vec2 uv) {
-    vec2 size = vec2(textureSize(tex, 0));
+// Where to fetch, with linear filtering, in a texture of `size` texels to sample `uv` so.
+vec2 sharp_uv(vec2 size, vec2 uv) {
     vec2 p = uv * size - 0.5;           // texel-centre coordinates
     vec2 i = floor(p);
     vec2 f = clamp((p - i - 0.5) * SHARPNESS + 0.5, 0.0, 1.0);
-    return texture(tex, (i + f + 0.5) / size);
+    return (i + f + 0.5) / size;
+}
+vec4 sharp_texture(sampler2D tex, vec2 uv) {
+    return texture(tex, sharp_uv(vec2(textureSize(tex, 0)), uv));
 }

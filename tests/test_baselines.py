@@ -83,7 +83,7 @@ def test_atw_round_trip(atw, truth):
     # At the render pose the warp is the identity: the decoded frame itself, as the GPU converts it.
     atlas = AtlasTexture(client.ctx)
     atlas.write(AtlasDecoder(output="yuv420").decode(payload.video))
-    decoded = np.frombuffer(atlas.texture.read(), np.uint8).reshape(H, W, 4)[..., :3]
+    decoded = atlas.read_rgb()
     atlas.release()
     assert np.abs(img.astype(int) - decoded).max() <= 1
     assert np.abs(img.astype(int) - AtlasDecoder().decode(payload.video)).mean() < 1.0   # and the CPU's, nearly
