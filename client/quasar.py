@@ -42,8 +42,8 @@ class QuasarClient(MethodClient):
         self.width, self.height = width, height
         self.frustum = Frustum.symmetric(fovy_deg, width / height)
         # budgets from the size this client asked for: quad layers of that size, an atlas of at most
-        # MAX_ATLAS_VIEWS such pictures (anything declaring more is refused before it is decoded); its planes are
-        # sampled as planes by the mesh's draws (render/atlas_texture.py)
+        # MAX_ATLAS_VIEWS such pictures (anything declaring more is refused before it is decoded), decoded to
+        # planes that the mesh's draws sample and convert (render/atlas_texture.py, render/atlas_colour.glsl)
         self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * width * height, output="yuv420")
         self.mesh = QuadMesh(self.ctx)
         self.view = MeshView(self.ctx, width, height)

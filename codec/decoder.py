@@ -61,7 +61,7 @@ class AtlasDecoder:
         stream declaring a bigger one fails with VideoError before its picture is allocated. ``output``: pictures
         come out as (height, width, 3) RGB ("rgb", converted by FFmpeg with interpolated chroma) or as their planes
         ("yuv420", a :class:`~quadcast.codec.picture.YuvPicture`: no conversion on the CPU, for a client that
-        converts on the GPU, render/atlas_texture.py)."""
+        converts on the GPU, render/atlas_texture.py and render/atlas_colour.glsl)."""
         if max_pixels is not None and max_pixels < 1:
             raise ValueError(f"AtlasDecoder: max_pixels must be >= 1, got {max_pixels}")
         if output not in self.OUTPUTS:

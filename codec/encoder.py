@@ -174,7 +174,7 @@ class AtlasEncoder:
 
         keyint = "infinite" if s.gop is None else str(s.gop)
         # chromaloc=1: the VUI says chroma sits at the centre of each 2x2 block, where the RGB conversion
-        # (_CHROMA_INPUT) puts it and the clients' conversion reads it (render/yuv_to_rgba.frag.glsl); H.264's
+        # (_CHROMA_INPUT) puts it and the clients' conversion reads it (render/atlas_colour.glsl); H.264's
         # default when unsaid is left-sited
         x264_params = [f"keyint={keyint}", "scenecut=0", "bframes=0", "repeat-headers=1", "chromaloc=1"]
         options = {"preset": s.preset, "tune": "zerolatency", "forced-idr": "1"}

@@ -5,9 +5,9 @@
 // codec/encoder.py makes it) and is converted here, per fragment: u_atlas holds luma, u_atlas_chroma Cb and Cr at
 // half size, both with linear filtering and uploaded top row first (render/atlas_texture.py). Both are fetched at
 // the luma grid's sharpened uv; with chroma sited at block centres the same uv finds its place in the half-size
-// plane, and the linear filter interpolates it bilinearly there. Converting the whole atlas to RGBA first cost a full-screen pass over an atlas about four
-// times the display's size each frame (11 ms of a 60 ms client frame on llvmpipe at 960x540); the draw fetches two
-// textures instead of one only where a fragment is shaded.
+// plane, and the linear filter interpolates it bilinearly there. Converting the whole atlas to RGBA first cost a
+// full-screen pass over an atlas about four times the display's size each frame (11 ms of a 60 ms client frame on
+// llvmpipe at 960x540); the draw fetches two textures instead of one only where a fragment is shaded.
 //
 // With ATLAS_RGB defined, u_atlas is an RGBA picture instead (the browser viewer's decoded VideoFrame).
 #include "sharp_texture.glsl"

@@ -3,12 +3,16 @@ render/atlas_colour.glsl)."""
 
 from __future__ import annotations
 
+import moderngl
 import numpy as np
 import pytest
 
 from quadcast.codec.decoder import AtlasDecoder
 from quadcast.codec.encoder import AtlasEncoder, VideoSettings
+from quadcast.protocol.quads import QuadSet
 from quadcast.render.atlas_texture import AtlasTexture
+from quadcast.render.camera import Camera, Pose
+from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 
 W, H = 96, 58   # chroma planes 48x29: the last chroma row covers one luma row
 
@@ -65,12 +69,6 @@ def test_the_mesh_draw_converts_the_planes_as_read_rgb_does(ctx):
     shows exactly what read_rgb shows, as drawing from that RGBA picture does; from another pose the two differ by
     half a level on average (measured 0.45, at most 4: the RGBA picture was rounded to 8 bits before filtering, and
     chroma is interpolated once instead of twice)."""
-    import moderngl
-
-    from quadcast.protocol.quads import QuadSet
-    from quadcast.render.camera import Camera, Pose
-    from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
-
     picture = _picture()
     atlas = AtlasTexture(ctx)
     atlas.write(picture)

@@ -8,8 +8,8 @@ figures depend on the machine (Mesa llvmpipe on 2 CPU cores here, not a GPU).
   byte ratio (QUASAR §4: residual frames are 2-3x smaller than references).
 - `bench_client`: a QUASAR server's frames (reference every 5, residuals between) into a `QuasarClient`: the
   client's stage times -- zstd (quad blob decode), video (H.264 atlas decode), quad_update (quad cache), mesh
-  (the atlas's upload and colour conversion on the GPU + compute-shader mesh build), render (forward pass +
-  read-back) -- and its cache size.
+  (the atlas planes' upload + compute-shader mesh build), render (forward pass, converting the atlas's colour
+  per fragment, + read-back) -- and its cache size.
 - `bench_stereo`: every displayed frame made a stereo pair from one mesh render (client.stereo.MeshStereo): the
   left eye drawn from the quad mesh, the right eye synthesized by YORO (mode "yoro") or by YORO plus re-rendering
   the disoccluded pixels from the mesh (mode "rerender"). Quality is the synthesized right eye against the
