@@ -9,10 +9,11 @@ import moderngl
 import numpy as np
 
 from quadcast.render.camera import Camera, Frustum
-from quadcast.render.gl import program, set_uniforms
+from quadcast.render.gl import compute, program, set_uniforms
 from quadcast.render.renderer import GBuffer, DeferredRenderer, read_texture
 
 HERE = Path(__file__).resolve().parent
+MAX_DEPTH_LEVELS = 8   # levels of LayerRenderer.visible_max (u_max_levels in server/peel.frag.glsl)
 RENDER_DIR = HERE.parent / "render"
 
 
@@ -53,6 +54,21 @@ class LayerRenderer:
             self._downsample = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "downsample.frag.glsl")
             self._downsample_vao = self.ctx.vertex_array(self._downsample, [])
         self.hidden = [GBuffer(self.ctx, hw, hh) for _ in range(layers - 1)]
+        # the visible layer's farthest depth over blocks (server/peel_depth_max.comp) for the peel pass's early
+        # reject: levels of halved size (rounded up) side by side, at most MAX_DEPTH_LEVELS
+        sizes = [(hw, hh)]
+        while len(sizes) < MAX_DEPTH_LEVELS and sizes[-1] != (1, 1):
+            sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
+        offsets = np.cumsum([0] + [w for w, _ in sizes[:-1]])
+        self._depth_levels = np.zeros((MAX_DEPTH_LEVELS, 4), np.int32)        # x offset, width, height, 0
+        self._depth_levels[:len(sizes), :3] = [(x, w, h) for x, (w, h) in zip(offsets, sizes)]
+        self._depth_level_count = len(sizes)
+        self.visible_max = self.ctx.texture((int(offsets[-1]) + sizes[-1][0], hh), 1, dtype="f4")
+        self.visible_max.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self.early_reject = True            # False: the peel shader runs its full search on every fragment
+        self.visible_max_levels = 0         # the levels the last `render` built
+        self._depth_max = {level0: compute(self.ctx, HERE / "peel_depth_max.comp", LEVEL0=level0)
+                           for level0 in (1, 0)}
         self.peel = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl")
         self._peel_cull = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "peel_cull.frag.glsl")
         self._peel_cull_vao = self.ctx.vertex_array(self._peel_cull, [])
@@ -71,6 +87,24 @@ class LayerRenderer:
         set_uniforms(self._peel_cull, u_position=0, u_restore=restore, u_z=0.0)
         self._peel_cull_vao.render(moderngl.TRIANGLES, vertices=3)
         self.ctx.depth_func = "<"
+
+    def _build_visible_max(self, position: moderngl.Texture, max_level: int) -> None:
+        """Levels 0..max_level of `visible_max` from the visible layer's view positions at the hidden size."""
+        position.use(0)
+        self.visible_max.bind_to_image(0, read=True, write=True)
+        for level in range(max_level + 1):
+            cs = self._depth_max[int(level == 0)]
+            out = self._depth_levels[level]
+            set_uniforms(cs, u_position=0, u_out=tuple(int(v) for v in out),
+                         u_in=tuple(int(v) for v in self._depth_levels[level - 1]))
+            cs.run(-(-int(out[1]) // 8), -(-int(out[2]) // 8))
+            self.ctx.memory_barrier()
+
+    def read_visible_max(self, level: int) -> np.ndarray:
+        """Level `level` (< `visible_max_levels`) of `visible_max` as the last `render` built it (float32 (h, w), top
+        row first)."""
+        x, w, h, _ = (int(v) for v in self._depth_levels[level])
+        return read_texture(self.visible_max, 1, "f4")[-h:, x:x + w]
 
     def _cull_where_empty(self, prev_position: moderngl.Texture):
         """A cull step (render.renderer.CullFn) for a peel pass: depth 0 where `prev_position` holds nothing."""
@@ -107,12 +141,20 @@ class LayerRenderer:
         prev_position = visible_position
         focal_px = small.focal_px[1]  # fy (fx for square pixels)
         max_radius_px = max(1, int(round(focal_px * np.tan(np.radians(max_radius_deg)))))
+        # the peel shader's widest square, 2 * (max_radius_px + 1) + 1 pixels, fits 2 x 2 texels of this level
+        max_level = min(int(2 * (max_radius_px + 1)).bit_length(), self._depth_level_count - 1)
+        if not self.early_reject:
+            max_level = -1
+        self._build_visible_max(visible_position, max_level)
+        self.visible_max_levels = max_level + 1
         for gb in self.hidden:
             prev_position.use(4)
             visible_position.use(5)
-            set_uniforms(self.peel, u_prev_position=4, u_visible_position=5, u_focal_px=focal_px,
-                         u_viewcell_radius=float(viewcell_radius), u_connectivity=float(connectivity),
-                         u_max_radius_px=max_radius_px)
+            self.visible_max.use(6)
+            set_uniforms(self.peel, u_prev_position=4, u_visible_position=5, u_visible_max=6, u_max_level=max_level,
+                         u_max_levels=self._depth_levels.tobytes(),
+                         u_focal_px=focal_px, u_viewcell_radius=float(viewcell_radius),
+                         u_connectivity=float(connectivity), u_max_radius_px=max_radius_px)
             r.geometry_pass(small, t, target=gb, prog=self.peel, cull=self._cull_where_empty(prev_position))
             self._depth_step(gb.depth, gb.position, restore=True)
             r.lighting_pass(gb, t, geometry_only=True)    # the atlas needs no sky colour in hidden layers

@@ -82,6 +82,32 @@ def test_peel_passes_skip_pixels_where_the_previous_layer_is_empty_without_chang
     assert np.isinf(full[2][0]).mean() > 0.3 and np.isfinite(full[2][0]).any()   # a sparse layer: much is culled
 
 
+def test_peel_early_reject_keeps_the_layers_of_the_full_search(ctx, courtyard_renderer):
+    """The peel shader's early reject (the visible layer's farthest depth over the square its search covers, from
+    LayerRenderer.visible_max) drops only fragments the full search would drop: the layers are the same."""
+    from quadcast.server.layers import LayerRenderer
+    cam = Camera.perspective(Pose.look_at([1.5, 1.6, 5], [-1, 1.5, 0]), 192, 108)
+    fast, full = (LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54)) for _ in range(2))
+    full.early_reject = False
+    got, want = ([(gb.read_depth(), gb.read_color(), gb.read_normal(), gb.read_depth_buffer())
+                  for gb in layers.render(cam, 0.0, 0.5)] for layers in (fast, full))
+    for a, b in zip(got, want):
+        assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert np.isfinite(want[1][0]).mean() > 0.02 and np.isfinite(want[2][0]).any()   # two layers hold surfaces
+    # Each level holds the largest visible depth over its blocks, counted from the image's bottom-left corner as
+    # GL counts pixels (the sky is SKY_DEPTH, 1e30); a level rounds its size up.
+    small = fast.read_visible_max(0)
+    assert small.shape == (54, 96) and (small == np.float32(1e30)).any() and (small < 1e3).any()
+    assert fast.visible_max_levels >= 4                   # the search reaches 5 pixels here: 2 x 2 texels of 8
+    for level in range(1, fast.visible_max_levels):
+        block = 1 << level
+        h, w = -(-54 // block), -(-96 // block)
+        padded = np.zeros((h * block, w * block), np.float32)
+        padded[:54, :96] = small[::-1]                     # bottom row first
+        want_level = padded.reshape(h, block, w, block).max(axis=(1, 3))[::-1]
+        np.testing.assert_array_equal(fast.read_visible_max(level), want_level)
+
+
 def test_grow_mask_is_a_one_pixel_binary_dilation():
     from scipy.ndimage import binary_dilation
     from quadcast.server.quads import grow_mask
