@@ -12,7 +12,7 @@ The triangles drawn, and their order, are those of a build from scratch.
 A large layer's flattened quads are then drawn in runs (quad_mesh_runs.comp): quads of one size side by side on one
 surface as one rectangle, the others of the rectangle as empty triangles. Along depth edges the quadtree leaves
 rows and columns of 1- and 2-pixel quads, and llvmpipe pays per triangle: a monastery view's cache layer draws
-40% of its triangles. After an edit only the blocks of rows it touched are redone.
+40% of its triangles. After an edit only the blocks of places it touched are redone.
 """
 from __future__ import annotations
 
@@ -298,7 +298,8 @@ class QuadMesh:
     def _merge_runs(self, layer: MeshLayer, buf: _LayerBuffers, edit: QuadSetEdit | None = None) -> None:
         """Rewrite the indices of the layer's flattened quads as runs (quad_mesh_runs.comp), so that they depend
         only on the quads and their vertices; after `edit` (applied to indices that held runs) only those of the
-        quads in a block of MAX_STACK rows of one size where it appended or freed a quad."""
+        quads in a block of MAX_RUN x MAX_STACK places of one size (a run never leaves one) where it appended or
+        freed a quad."""
         w, h = layer.camera.width, layer.camera.height
         offsets, cells = [], 0
         for s in range(12):
@@ -310,19 +311,20 @@ class QuadMesh:
         mask = np.left_shift(1, q.size_log2.astype(np.int32)) - 1
         chosen = (buf.count == FLAT_VERTICES) & ((q.x & mask) == 0) & ((q.y & mask) == 0) & (q.x < w) & (q.y < h)
         if edit is not None:
-            old_rows = [(edit.appended.y, edit.appended.size_log2)]
+            changed = [(edit.appended.x, edit.appended.y, edit.appended.size_log2)]
             if edit.kept is not None:
                 freed, n = np.flatnonzero(~edit.kept), len(edit.previous)
                 prev, app = freed[freed < n], freed[freed >= n] - n
-                old_rows += [(edit.previous.y[prev], edit.previous.size_log2[prev]),
-                             (edit.appended.y[app], edit.appended.size_log2[app])]
-            def block(y, size_log2):
-                return (np.minimum(y, h - 1) >> size_log2.astype(np.int32)) // MAX_STACK
+                changed += [(edit.previous.x[prev], edit.previous.y[prev], edit.previous.size_log2[prev]),
+                            (edit.appended.x[app], edit.appended.y[app], edit.appended.size_log2[app])]
+            def block(x, y, size_log2):
+                s = size_log2.astype(np.int32)
+                return (np.minimum(y, h - 1) >> s) // MAX_STACK, (np.minimum(x, w - 1) >> s) // MAX_RUN, size_log2
 
-            touched = np.zeros((h, 12), bool)
-            for y, size_log2 in old_rows:
-                touched[block(y, size_log2), size_log2] = True
-            chosen &= touched[block(q.y, q.size_log2), q.size_log2]
+            touched = np.zeros((h // MAX_STACK + 1, w // MAX_RUN + 1, 12), bool)
+            for x, y, size_log2 in changed:
+                touched[block(x, y, size_log2)] = True
+            chosen &= touched[block(q.x, q.y, q.size_log2)]
         sel = np.flatnonzero(chosen)
         if not len(sel):
             return
