@@ -13,8 +13,8 @@ from quadcast.render.gl import compute, program, set_uniforms
 from quadcast.render.renderer import GBuffer, DeferredRenderer, read_texture
 
 HERE = Path(__file__).resolve().parent
-MAX_DEPTH_LEVELS = 8   # levels of LayerRenderer.visible_max (u_max_levels in server/peel.frag.glsl)
 RENDER_DIR = HERE.parent / "render"
+MAX_DEPTH_LEVELS = 8   # levels of LayerRenderer.visible_max (u_max_levels in server/peel.frag.glsl)
 
 
 def wide_camera(camera: Camera, fovy_deg: float = 120.0, scale: float = 0.5) -> Camera:

@@ -98,7 +98,7 @@ def test_peel_early_reject_keeps_the_layers_of_the_full_search(ctx, courtyard_re
     # GL counts pixels (the sky is SKY_DEPTH, 1e30); a level rounds its size up.
     small = fast.read_visible_max(0)
     assert small.shape == (54, 96) and (small == np.float32(1e30)).any() and (small < 1e3).any()
-    assert fast.visible_max_levels >= 4                   # the search reaches 5 pixels here: 2 x 2 texels of 8
+    assert fast.visible_max_levels >= 4                   # a search of up to 5 pixels here: blocks up to 16
     for level in range(1, fast.visible_max_levels):
         block = 1 << level
         h, w = -(-54 // block), -(-96 // block)
