@@ -15,17 +15,14 @@ picture of the atlas as the draws see it at texel centres.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import moderngl
 import numpy as np
 
 from quadcast.codec.picture import YuvPicture
 from quadcast.render.gl import RENDER_DIR, program, set_uniforms
+from quadcast.render.renderer import read_texture
 
 __all__ = ["AtlasTexture"]
-
-HERE = Path(__file__).resolve().parent
 
 
 class AtlasTexture:
@@ -70,7 +67,7 @@ class AtlasTexture:
         """The picture as the draws sample it at texel centres: (height, width, 3) uint8 RGB, top row first
         (one conversion pass, ``yuv_to_rgba.frag.glsl``)."""
         w, h = self.size
-        prog = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "yuv_to_rgba.frag.glsl")
+        prog = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", RENDER_DIR / "yuv_to_rgba.frag.glsl")
         target = self.ctx.texture((w, h), 4)
         fbo = self.ctx.framebuffer([target])
         vao = self.ctx.vertex_array(prog, [])
@@ -79,11 +76,10 @@ class AtlasTexture:
             self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
             set_uniforms(prog, u_z=0.0, **self.use(0))
             vao.render(moderngl.TRIANGLES, vertices=3)
-            rgba = np.frombuffer(target.read(), np.uint8).reshape(h, w, 4)
+            return np.ascontiguousarray(read_texture(target, 4, "u1")[..., :3])
         finally:
             for obj in (vao, fbo, target):
                 obj.release()
-        return np.ascontiguousarray(rgba[::-1, :, :3])   # GL's row 0 is the picture's bottom row
 
     def release(self) -> None:
         for t in self._planes:
