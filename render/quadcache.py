@@ -90,13 +90,47 @@ class QuadCache:
         flat[written] = values
         return written, before
 
+    def _write_disjoint(self, quads: QuadSet) -> np.ndarray | None:
+        """Write every quad's pixels into the cleared index map in any order, and return how many pixels each
+        ends up owning -- the right map if no two quads overlap, which is so exactly when each owns its whole
+        (clipped) square. None (the map left dirty) if some do: the write order then decides (`_rasterize`).
+        A reference frame's layer tiles the image, and this skips `_rasterize`'s ranks and its per-pixel check:
+        5 ms instead of 15 for a monastery view's 80k quads at 960x540."""
+        flat = self.index_map.reshape(-1)
+        levels = quads.size_log2
+        xs, ys = quads.x.astype(np.int64), quads.y.astype(np.int64)
+        sizes = np.left_shift(1, levels.astype(np.int64))
+        for level in np.unique(levels):
+            s = 1 << int(level)
+            sel = np.flatnonzero(levels == level)
+            if s >= 32:                     # few, large quads: a slice each (clipped to the map)
+                for i in sel:
+                    self.index_map[ys[i]:ys[i] + s, xs[i]:xs[i] + s] = i
+                continue
+            oy, ox = np.divmod(np.arange(s * s), s)
+            py, px = ys[sel, None] + oy, xs[sel, None] + ox
+            index = np.broadcast_to(sel[:, None], py.shape)
+            inside = (py < self.height) & (px < self.width)
+            if inside.all():
+                flat[py * self.width + px] = index
+            else:
+                flat[(py * self.width + px)[inside]] = index[inside]
+        owned = np.bincount((self.index_map + 1).ravel(), minlength=len(quads) + 1)[1:]
+        area = ((np.minimum(xs + sizes, self.width) - np.minimum(xs, self.width))
+                * (np.minimum(ys + sizes, self.height) - np.minimum(ys, self.height)))
+        return owned if np.array_equal(owned, area) else None
+
     def reset(self, quads: QuadSet) -> None:
         """A reference frame: its visible-layer quads replace everything."""
         self.quads = quads
         self.edit = None
         self.index_map.fill(-1)
-        self._rasterize(quads, 0)
-        self._owned_pixels = np.bincount((self.index_map + 1).ravel(), minlength=len(quads) + 1)[1:]
+        owned = self._write_disjoint(quads)
+        if owned is None:
+            self.index_map.fill(-1)
+            self._rasterize(quads, 0)
+            owned = np.bincount((self.index_map + 1).ravel(), minlength=len(quads) + 1)[1:]
+        self._owned_pixels = owned
 
     def update(self, quads: QuadSet) -> int:
         """A residual frame's updated quads: append them, let them own their pixels, free quads left with none.

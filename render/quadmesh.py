@@ -112,8 +112,10 @@ class _LayerBuffers:
                       self.plane_buf):
                 b.release()
         self.release_packed()
-        self.quad_capacity = max(quads, 2 * self.quad_capacity, 256)
-        self.vertex_capacity = max(vertices, 2 * self.vertex_capacity, 256 * FLAT_VERTICES)
+        # half as much again as asked for: a cache layer's first residual frames append to it in place (with room
+        # for exactly the reference frame's quads, the first one rebuilt the whole layer: 20 ms in the courtyard)
+        self.quad_capacity = max(quads * 3 // 2, 2 * self.quad_capacity, 256)
+        self.vertex_capacity = max(vertices * 3 // 2, 2 * self.vertex_capacity, 256 * FLAT_VERTICES)
         self.quad_buf = ctx.buffer(reserve=self.quad_capacity * QUAD_FLOATS * 4)
         self.order_buf = ctx.buffer(reserve=self.quad_capacity * 4)
         self.vertex_buf = ctx.buffer(reserve=self.vertex_capacity * 5 * 4)

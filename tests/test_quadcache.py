@@ -61,3 +61,58 @@ def test_cache_of_disjoint_quads_covers_each_pixel_once():
     cache.reset(quads)
     expected = (np.arange(h)[:, None] // 4) * (w // 4) + np.arange(w)[None, :] // 4
     np.testing.assert_array_equal(cache.index_map, expected)
+
+
+def quadtree_tiling(rng, width, height, max_size_log2=4):
+    """Quads tiling a width x height image as a quadtree's leaves do: aligned squares of mixed sizes, those on the
+    right and bottom edges reaching past the image."""
+    quads = []
+
+    def split(x, y, level):
+        if x >= width or y >= height:
+            return
+        if level == 0 or rng.random() < 0.4:
+            quads.append((x, y, level))
+            return
+        half = 1 << (level - 1)
+        for dy in (0, half):
+            for dx in (0, half):
+                split(x + dx, y + dy, level - 1)
+
+    top = 1 << max_size_log2
+    for y in range(0, height, top):
+        for x in range(0, width, top):
+            split(x, y, max_size_log2)
+    x, y, size_log2 = (np.array(c) for c in zip(*quads))
+    perm = rng.permutation(len(x))
+    n = len(x)
+    return QuadSet(x=x[perm], y=y[perm], size_log2=size_log2[perm], flattened=np.ones(n, bool),
+                   alpha=np.zeros(n, bool), normal=np.tile([0.0, 0.0, 1.0], (n, 1)), depth=np.ones(n),
+                   offsets=np.zeros((0, OFFSETS_PER_QUAD)))
+
+
+@pytest.mark.parametrize("overlap", [False, True])
+def test_cache_reset_of_a_tiling_matches_the_loop(overlap, monkeypatch):
+    """A reference frame's layer (a quadtree's leaves, clipped at the edges, in any order) takes the reset's path
+    for disjoint quads; one quad written twice (a malformed layer) the ordered one. Both give the loop's map, and
+    each quad's pixel count is what the map says."""
+    rng = np.random.default_rng(7)
+    w, h = 100, 45        # not multiples of the largest quad: quads along the right and bottom edges are clipped
+    quads = quadtree_tiling(rng, w, h, max_size_log2=6)
+    assert len(np.unique(quads.size_log2)) >= 5
+    if overlap:
+        k = int(np.argmax(quads.size_log2 == 2))
+        extra = quads.select(np.arange(len(quads)) == k)
+        extra = QuadSet(x=extra.x + 1, y=extra.y, size_log2=extra.size_log2, flattened=extra.flattened,
+                        alpha=extra.alpha, normal=extra.normal, depth=extra.depth, offsets=extra.offsets)
+        quads = QuadSet.concatenate([quads, extra])
+    cache, reference = QuadCache(w, h), np.full((h, w), -1, np.int32)
+    ordered = []
+    rasterize = cache._rasterize
+    monkeypatch.setattr(cache, "_rasterize", lambda *args: ordered.append(1) or rasterize(*args))
+    cache.reset(quads)
+    assert bool(ordered) == overlap
+    loop_rasterize(reference, quads, 0)
+    np.testing.assert_array_equal(cache.index_map, reference)
+    assert (reference >= 0).all()
+    np.testing.assert_array_equal(cache._owned_pixels, np.bincount(reference.ravel(), minlength=len(quads)))

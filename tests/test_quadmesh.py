@@ -110,6 +110,33 @@ def test_cache_mesh_edited_after_updates_equals_a_fresh_build(ctx, runs):
     assert freed > 0 and builds["edit"] > 0
 
 
+@pytest.mark.parametrize("min_run_quads", [None, 0], ids=["quad by quad", "runs"])
+def test_first_residual_frame_after_a_reference_is_an_edit(ctx, monkeypatch, min_run_quads):
+    """The buffers a reference frame's build makes leave room for the next frames' quads: a residual frame's few
+    new quads, the first after it, are appended in place, not a rebuild of the layer."""
+    w, h = 64, 36
+    camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
+    cache = QuadCache(w, h)
+    cache.reset(plane_quads(camera, [(x, y, 0) for y in range(h) for x in range(w)], (0.0, 0.0, 1.0), -4.0))
+    mesh = QuadMesh(ctx)
+    mesh.min_run_quads = min_run_quads
+    mesh.build([MeshLayer(cache.quads, camera, (0, 0, w, h), edit=cache.edit)], (w, h))
+    generated = []
+    generate = mesh._generate
+    monkeypatch.setattr(mesh, "_generate", lambda *args: generated.append(1) or generate(*args))
+    assert cache.update(plane_quads(camera, [(8, 8, 1), (20, 4, 1)], (0.1, 0.0, 1.0), -3.0)) == 8
+    mesh.build([MeshLayer(cache.quads, camera, (0, 0, w, h), edit=cache.edit)], (w, h))
+    assert not generated
+    (_, buf), = mesh.layers
+    assert buf.dead == 8 * 4       # the 8 quads the two new ones cover
+    fresh = QuadMesh(ctx)
+    fresh.min_run_quads = min_run_quads
+    fresh.build([MeshLayer(cache.quads, camera, (0, 0, w, h))], (w, h))
+    (edited,), (built,) = live_triangles(mesh), live_triangles(fresh)
+    np.testing.assert_array_equal(edited, built)
+    assert len(edited) == 2 * (w * h - 6) if min_run_quads is None else len(edited) < 100   # runs: rectangles
+
+
 def test_quads_on_one_surface_draw_as_rectangles(ctx):
     """1-pixel quads on two planes (x < 40 and x >= 40) in a 64 x 8 layer are drawn as five rectangles: rows end
     where the surface changes and at every 16th pixel, the 8 rows of each stack into one. The view from a nearby
