@@ -390,7 +390,7 @@ class LiveClient:
         eye rendered, for the cost ratio)."""
         t0 = time.perf_counter()
         image = self.method_client.render(pose)
-        holes = self.method_client.coverage().figures()
+        holes = self.method_client.coverage().figures() if record else {}   # only recorded frames report them
         stats = getattr(self.method_client, "stats", {}) or {}
         ms = dict(stats.get("ms", {}))
         ms.setdefault("render", (time.perf_counter() - t0) * 1e3)

@@ -155,13 +155,16 @@ class QuasarClient(MethodClient):
             self._coverage = Coverage.empty(self.width, self.height)
             return np.zeros((self.height, self.width, 3), np.uint8)
         self.view.render(self.mesh, camera, self.atlas)
-        image, drawn = self.view.read_color_drawn()
-        self._coverage = Coverage.from_masks(drawn)
+        image = self.view.read_color()
+        self._coverage = None    # read from the view when asked for (`coverage`): a display loop seldom needs it
         self.stats.setdefault("ms", {})["render"] = (time.perf_counter() - t0) * 1e3
         return image
 
     def coverage(self) -> Coverage:
-        """Where the last `render` drew a quad (the mesh view's alpha); nothing else fills the display."""
+        """Where the last `render` drew a quad (read from the mesh view on the first call after it); nothing
+        else fills the display."""
+        if self._coverage is None:
+            self._coverage = Coverage.from_masks(self.view.read_drawn())
         return self._coverage
 
     # ------------------------------------------------------------------------------------------------ stereo
@@ -172,6 +175,7 @@ class QuasarClient(MethodClient):
         re-renders the other eye's disoccluded pixels from the mesh; "both" renders both eyes). `with_rendered`
         also renders the other eye normally, for its image and the cost ratio. Before any payload, both eyes
         are black. The stage times are also in `stats["stereo_ms"]`."""
+        self.coverage()    # the last `render`'s, read before the dominant eye is drawn into the same view
         stereo = self._stereo
         if stereo is None or stereo.synth.dominant != dominant or stereo.synth.ipd != float(ipd):
             if stereo is not None:

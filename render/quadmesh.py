@@ -65,23 +65,26 @@ class CurrentView:
 def quads_to_gpu(quads: QuadSet, first_vertex: int = 0) -> tuple[np.ndarray, int]:
     """The (N, 24) float32 rows the mesh shader reads (offsets zero for flattened quads), each quad's head.w
     holding its first vertex (from `first_vertex` on; its indices start at 3/2 of that) and whether it is
-    flattened; and the vertex count."""
+    flattened; and the vertex count. The head's columns are filled in a (4, N) array and copied over in one go
+    (filled in place, 96 bytes apart, a monastery view's 80k quads took 3.3 ms instead of 2.1)."""
     n = len(quads)
-    rows = np.zeros((n, QUAD_FLOATS), np.float32)
-    head = rows[:, :4].view(np.uint32)
-    head[:, 0], head[:, 1], head[:, 2] = quads.x, quads.y, quads.size_log2
-    flat = quads.flattened | (quads.offset_index < 0)
-    counts = np.where(flat, FLAT_VERTICES, FULL_VERTICES).astype(np.int64)
-    starts = np.cumsum(counts) - counts + first_vertex
-    total = int(counts.sum())
+    flat = quads.flattened          # a QuadSet's offsets hold one row per other quad, in order
+    counts = np.where(flat, FLAT_VERTICES, FULL_VERTICES)
+    ends = np.cumsum(counts) + first_vertex
+    total = int(ends[-1]) - first_vertex if n else 0
     if first_vertex + total >= 1 << 31:
         raise ValueError(f"quad mesh: {first_vertex + total} vertices do not fit a 31-bit vertex index")
-    head[:, 3] = starts.astype(np.uint32) | (flat.astype(np.uint32) << np.uint32(31))
+    head = np.empty((4, n), np.uint32)
+    head[0], head[1], head[2] = quads.x, quads.y, quads.size_log2
+    head[3] = ends - counts
+    head[3] |= flat.astype(np.uint32) << np.uint32(31)
+    rows = np.empty((n, QUAD_FLOATS), np.float32)
+    rows[:, :4] = head.view(np.float32).T
     rows[:, 4:7] = quads.normal
     rows[:, 7] = quads.depth
-    idx = quads.offset_index
-    has = ~flat
-    rows[has, 8:24] = quads.offsets[idx[has]].astype(np.float32)
+    rows[:, 8:] = 0.0
+    if len(quads.offsets):
+        rows[~flat, 8:] = quads.offsets
     return rows, total
 
 
@@ -447,17 +450,20 @@ class MeshView:
             raise ValueError("MeshView: a depth-only view has no colour to read")
 
     def read_color(self) -> np.ndarray:
-        self._check_color()
-        return read_texture(self.color, 4, "u1")[..., :3]
-
-    def read_color_drawn(self) -> tuple[np.ndarray, np.ndarray]:
-        """The colour (H, W, 3) and where the mesh drew (H, W) bool: every mesh fragment writes a view depth > 0
-        where the target is cleared to 0. The colour is read as RGB (the driver drops alpha faster than numpy
+        """The colour (H, W, 3) uint8, top row first, read as RGB (the driver drops alpha faster than numpy
         copies three of four bytes: 0.9 ms against 3.2 at 960x540)."""
         self._check_color()
         rgb = np.frombuffer(self.fbo.read(components=3, attachment=0), np.uint8)
-        rgb = rgb.reshape(self.height, self.width, 3)[::-1].copy()
-        return rgb, read_texture(self.view_depth, 1, "f4") > 0
+        return rgb.reshape(self.height, self.width, 3)[::-1].copy()
+
+    def read_drawn(self) -> np.ndarray:
+        """Where the mesh drew, (H, W) bool, top row first: every mesh fragment writes a view depth > 0 where the
+        target is cleared to 0."""
+        return read_texture(self.view_depth, 1, "f4") > 0
+
+    def read_color_drawn(self) -> tuple[np.ndarray, np.ndarray]:
+        """`read_color` and `read_drawn`."""
+        return self.read_color(), self.read_drawn()
 
     def read_depth(self) -> np.ndarray:
         """Linear view depth, top row first; inf where nothing was drawn."""

@@ -67,12 +67,16 @@ def test_quasar_holes_count_the_pixels_no_quad_covers_exactly(ctx):
     assert client.coverage().holes == 1.0                  # before the first payload: black, all holes
     client.receive(payload)
     image = client.render(camera.pose)
+    away = Pose([1.0, 1.5, 2.0], Rotation.from_euler("y", 90, degrees=True).as_quat())   # the quad out of view
+    client.stereo_frame(away)                              # draws into the view `coverage` reads
     c = client.coverage()
     assert c.hole_pixels == W * H - 16 * 16
     expected = np.ones((H, W), bool)
     expected[8:24, 16:32] = False
     assert (c.hole_mask == expected).all() and c.empty_fraction == c.holes and c.interior_fraction == 0
     assert (image[~expected] > 150).all() and (image[expected] == 0).all()
+    client.render(away)
+    assert client.coverage().holes == 1.0
 
 
 @pytest.mark.parametrize("kind", ["atw", "meshwarp"])
