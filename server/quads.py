@@ -64,6 +64,10 @@ class QuadTimings:
     merge: float = 0.0
     gather: float = 0.0
 
+    @property
+    def total(self) -> float:
+        return self.quads + self.merge + self.gather
+
     def add(self, other: "QuadTimings") -> None:
         self.quads += other.quads
         self.merge += other.merge

@@ -267,7 +267,7 @@ def test_encode_command_writes_decodable_video_and_stats(tmp_path):
     assert [f["type"] for f in stats["frames"]] == ["reference", "residual", "residual"] * 2
     for f in stats["frames"]:
         assert f["bits_per_quad_raw"] <= 80
-        assert set(f["ms"]) >= {"gbuffers", "quads", "merge", "gather", "zstd", "video"}
+        assert set(f["ms"]) >= {"gbuffers", "cache", "quads", "merge", "gather", "zstd", "video"}
         assert f["quads"] == sum(f["quads_per_layer"].values())
     assert 0 < stats["residual_to_reference_bytes"] < 1
     assert stats["mbps_at_30fps"] > 0

@@ -38,7 +38,7 @@ from quadcast.render.camera import Camera, Pose
 from quadcast.render.scene import Scene, SceneError, load_scene
 from quadcast.render.traces import Trace, resolve_trace, scene_tour
 
-SERVER_STAGES = ("gbuffers", "quads", "merge", "gather", "zstd", "video")
+SERVER_STAGES = ("gbuffers", "cache", "quads", "merge", "gather", "zstd", "video")
 SHARED_TRACES = Path(__file__).resolve().parents[2] / "shared" / "traces"
 """Where `quadcast bench quality` looks for real head traces by default: the checkout's ../shared/traces."""
 QUALITY_SCENES = ("builtin:courtyard", "monastery")
