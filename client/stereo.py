@@ -51,6 +51,7 @@ T = TypeVar("T")
 # The row pass starts from it; the buffer is cleared to it, a fill, where a loop of image stores in the row pass
 # itself (eight rows apart, one per SIMD lane) cost llvmpipe ~7 ms at 960x540.
 UNSET_TEXEL = (0.0, 1e30, -1.0, -1.0)
+ROWS_PER_GROUP = 8   # the row pass's workgroup (yoro_scan.comp): 540 rows make 68 groups for llvmpipe's threads
 
 DrawFn = Callable[[Camera, CullFn], moderngl.Texture]
 """draw_fn(camera, cull) renders `camera`'s view with `cull` as the draw's cull step (`CullFn`: the shared draw
@@ -129,11 +130,12 @@ class StereoSynthesizer:
                              u_continuity=float(continuity), u_edge_radius=float(edge_radius),
                              u_edge_disparity=float(edge_disparity), u_max_stretch=float(max_stretch))
         self.reproject_cs = compute(ctx, HERE / "yoro_reproject.comp")
-        self.scan_cs = compute(ctx, HERE / "yoro_scan.comp", FUSED=0)
+        self.scan_cs = compute(ctx, HERE / "yoro_scan.comp", FUSED=0, ROWS_PER_GROUP=ROWS_PER_GROUP)
         fixed = dict(LINEAR=int(bool(linear)), COARSE=int(self.intermediate_width < self.width))
         # a full-resolution ImBuffer: the three stages' row pass in one dispatch, with and without the edge reject
         self.row_cs = None if fixed["COARSE"] else {
-            edges: compute(ctx, HERE / "yoro_scan.comp", FUSED=1, EDGES=int(edges), LINEAR=fixed["LINEAR"])
+            edges: compute(ctx, HERE / "yoro_scan.comp", FUSED=1, EDGES=int(edges), LINEAR=fixed["LINEAR"],
+                           ROWS_PER_GROUP=ROWS_PER_GROUP)
             for edges in (True, False)}
         # covered pixels (and lists the holes), with and without the edge reject; the listed holes
         self.patch_cs = {edges: compute(ctx, HERE / "yoro_patch.comp", HOLES=0, EDGES=int(edges), **fixed)
@@ -231,7 +233,7 @@ class StereoSynthesizer:
         self.holes.bind_to_storage_buffer(3)
         self._clear(self._imbuffer_fbo, UNSET_TEXEL)
         self._clear(self._mask_fbo, (0.0, 0.0, 0.0, 0.0))
-        row_cs.run((self.height + 31) // 32)
+        row_cs.run(-(-self.height // ROWS_PER_GROUP))
         self.ctx.memory_barrier()
         return self._fill_holes(camera, uniforms)
 
@@ -271,7 +273,7 @@ class StereoSynthesizer:
         self._clear(self._imbuffer_fbo, UNSET_TEXEL)
         self.targets.bind_to_image(0, read=True, write=False)
         self.imbuffer.bind_to_image(1, read=True, write=True)
-        self.scan_cs.run((self.height + 31) // 32)
+        self.scan_cs.run(-(-self.height // ROWS_PER_GROUP))
         self.ctx.memory_barrier()
 
     def patch(self, color: moderngl.Texture, depth: moderngl.Texture, camera: Camera,
