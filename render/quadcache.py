@@ -90,6 +90,10 @@ class QuadCache:
         flat[written] = values
         return written, before
 
+    def _owned_by_map(self, n: int) -> np.ndarray:
+        """How many pixels of the index map each of `n` quads owns."""
+        return np.bincount((self.index_map + 1).ravel(), minlength=n + 1)[1:]
+
     def _write_disjoint(self, quads: QuadSet) -> np.ndarray | None:
         """Write every quad's pixels into the cleared index map in any order, and return how many pixels each
         ends up owning -- the right map if no two quads overlap, which is so exactly when each owns its whole
@@ -115,7 +119,7 @@ class QuadCache:
                 flat[py * self.width + px] = index
             else:
                 flat[(py * self.width + px)[inside]] = index[inside]
-        owned = np.bincount((self.index_map + 1).ravel(), minlength=len(quads) + 1)[1:]
+        owned = self._owned_by_map(len(quads))
         area = ((np.minimum(xs + sizes, self.width) - np.minimum(xs, self.width))
                 * (np.minimum(ys + sizes, self.height) - np.minimum(ys, self.height)))
         return owned if np.array_equal(owned, area) else None
@@ -129,7 +133,7 @@ class QuadCache:
         if owned is None:
             self.index_map.fill(-1)
             self._rasterize(quads, 0)
-            owned = np.bincount((self.index_map + 1).ravel(), minlength=len(quads) + 1)[1:]
+            owned = self._owned_by_map(len(quads))
         self._owned_pixels = owned
 
     def update(self, quads: QuadSet) -> int:

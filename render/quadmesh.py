@@ -461,10 +461,6 @@ class MeshView:
         target is cleared to 0."""
         return read_texture(self.view_depth, 1, "f4") > 0
 
-    def read_color_drawn(self) -> tuple[np.ndarray, np.ndarray]:
-        """`read_color` and `read_drawn`."""
-        return self.read_color(), self.read_drawn()
-
     def read_depth(self) -> np.ndarray:
         """Linear view depth, top row first; inf where nothing was drawn."""
         depth = read_texture(self.view_depth, 1, "f4")

@@ -9,12 +9,11 @@ import moderngl
 import numpy as np
 
 from quadcast.render.camera import Camera, Frustum
-from quadcast.render.gl import compute, program, set_uniforms
+from quadcast.render.gl import RENDER_DIR, compute, program, set_uniforms
 from quadcast.render.renderer import GBuffer, DeferredRenderer, read_texture
 
 HERE = Path(__file__).resolve().parent
-RENDER_DIR = HERE.parent / "render"
-MAX_DEPTH_LEVELS = 8   # levels of LayerRenderer.visible_max (u_max_levels in server/peel.frag.glsl)
+MAX_DEPTH_LEVELS = 8   # levels of LayerRenderer.visible_max (the size of server/peel.frag.glsl's u_max_levels)
 
 
 def wide_camera(camera: Camera, fovy_deg: float = 120.0, scale: float = 0.5) -> Camera:
@@ -69,7 +68,8 @@ class LayerRenderer:
         self.visible_max_levels = 0         # the levels the last `render` built
         self._depth_max = {level0: compute(self.ctx, HERE / "peel_depth_max.comp", LEVEL0=level0)
                            for level0 in (1, 0)}
-        self.peel = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl")
+        self.peel = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl",
+                            MAX_DEPTH_LEVELS=MAX_DEPTH_LEVELS)
         self._peel_cull = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "peel_cull.frag.glsl")
         self._peel_cull_vao = self.ctx.vertex_array(self._peel_cull, [])
         self._peel_cull_fbos: dict[int, moderngl.Framebuffer] = {}

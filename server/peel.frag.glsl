@@ -10,7 +10,7 @@
 uniform sampler2D u_prev_position;     // previous layer's view positions (w > 0 where geometry)
 uniform sampler2D u_visible_position;  // the visible layer's
 uniform sampler2D u_visible_max;       // its farthest depth over blocks, levels side by side (peel_depth_max.comp)
-uniform ivec4 u_max_levels[8];         // per level: x offset in u_visible_max, width, height
+uniform ivec4 u_max_levels[MAX_DEPTH_LEVELS];   // per level: x offset in u_visible_max, width, height
 uniform int u_max_level;               // the last level built (-1: no early reject)
 uniform float u_focal_px;              // pixels per unit of x/z
 uniform float u_viewcell_radius;       // metres

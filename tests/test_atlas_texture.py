@@ -87,7 +87,7 @@ def test_the_mesh_draw_converts_the_planes_as_read_rgb_does(ctx):
         images = []
         for source in (atlas, texture):
             view.render(mesh, eye, source)
-            image, drawn = view.read_color_drawn()
+            image, drawn = view.read_color(), view.read_drawn()
             images.append(image[drawn].astype(int))
         assert len(images[0]) > 0.6 * W * H
         difference = np.abs(images[0] - images[1])

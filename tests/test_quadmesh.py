@@ -190,7 +190,7 @@ def test_depth_only_view_gives_the_colour_views_depths(ctx):
     with pytest.raises(ValueError, match="needs one"):
         colour.render(mesh, eye)
     with pytest.raises(ValueError, match="no colour"):
-        depth_only.read_color_drawn()
+        depth_only.read_color()
 
 
 def test_a_layer_samples_only_its_own_atlas_rect(ctx):
@@ -208,7 +208,7 @@ def test_a_layer_samples_only_its_own_atlas_rect(ctx):
     mesh.build([MeshLayer(quad, camera, (8, 4, 16, 16))], (32, 32))
     view = MeshView(ctx, 128, 128)                            # the same view, 8x magnified
     view.render(mesh, Camera.perspective(Pose([0.0, 0.0, 0.0]), 128, 128), atlas)
-    image, drawn = view.read_color_drawn()
+    image, drawn = view.read_color(), view.read_drawn()
     assert drawn.mean() > 0.95
     assert image[drawn][:, 1].max() == 0, "green from outside the rect was filtered in"
     assert image[drawn][:, 0].min() == 255
@@ -251,7 +251,7 @@ def test_cached_layer_takes_the_current_views_colour_where_that_view_saw_the_sur
 
     mesh.set_current_view(current, (w, 0, w, h))
     view.render(mesh, eye, atlas)
-    image, drawn = view.read_color_drawn()
+    image, drawn = view.read_color(), view.read_drawn()
     image = image.astype(float)
     assert drawn.all()
     assert (hidden & inside).sum() > 100 and (seen & inside).sum() > 100
