@@ -2,6 +2,7 @@
 from the user's current pose."""
 from __future__ import annotations
 
+import concurrent.futures
 import time
 
 import moderngl
@@ -53,6 +54,7 @@ class QuasarClient(MethodClient):
         self.reference_camera: Camera | None = None
         self.far_layers: list[MeshLayer] = []
         self.atlas_texture = AtlasTexture(self.ctx)
+        self._video_thread = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"{self.name}-video")
         self._needs_reference = True
         self.last_frame_id = -1
         self.stats: dict = {}
@@ -69,40 +71,61 @@ class QuasarClient(MethodClient):
         return self._needs_reference
 
     def receive(self, payload: FramePayload) -> None:
-        """Apply one payload. On any defect raise ProtocolError/VideoError and keep showing the last good state."""
+        """Apply one payload. On any defect raise ProtocolError/VideoError and keep showing the last good state.
+
+        The atlas decodes on a thread of its own (FFmpeg runs without the GIL) while this one parses the geometry
+        and works out the cache's next state; nothing the display shows changes until both are done and valid.
+        A frame whose geometry is refused after its video was decoded leaves the decoder past it, so the client
+        then needs a reference frame."""
         ms: dict[str, float] = {}
         if payload.method != self.method:
             raise ProtocolError(f"{self.name} client got a {payload.method.name} payload")
-        t0 = time.perf_counter()
-        frame = decode_quad_frame(payload.geometry, max_quads=self.max_quads, size=(self.width, self.height))
-        ms["zstd"] = (time.perf_counter() - t0) * 1e3
         is_reference = payload.frame_type == FrameType.REFERENCE
-        if is_reference and LayerKind.VISIBLE not in [layer.kind for layer in frame.layers]:
-            raise ProtocolError("reference frame has no visible layer")
         if not is_reference and (payload.reference_id != self.reference_id or self.cache is None):
             self._needs_reference = True
             raise ProtocolError(f"residual frame {payload.frame_id} needs reference {payload.reference_id}, "
                                 f"the client has {self.reference_id if self.reference_id >= 0 else 'none'}")
+        decoding = self._video_thread.submit(self.decoder.decode, payload.video, payload.frame_id)
+        try:
+            t0 = time.perf_counter()
+            frame = decode_quad_frame(payload.geometry, max_quads=self.max_quads, size=(self.width, self.height))
+            ms["zstd"] = (time.perf_counter() - t0) * 1e3
+            kinds = [l.kind for l in frame.layers]
+            if is_reference and LayerKind.VISIBLE not in kinds:
+                raise ProtocolError("reference frame has no visible layer")
+            cameras = self._layer_cameras(frame)
+            t0 = time.perf_counter()
+            # the cache's next state, kept only if the whole frame is good
+            if is_reference:
+                visible = frame.layers[kinds.index(LayerKind.VISIBLE)]
+                cache = QuadCache(visible.width, visible.height)
+                cache.reset(visible.quads)
+            elif LayerKind.UPDATED in kinds:
+                update = self.cache.plan_update(frame.layers[kinds.index(LayerKind.UPDATED)].quads)
+            quad_ms = (time.perf_counter() - t0) * 1e3
+        except BaseException:
+            concurrent.futures.wait([decoding])
+            self._needs_reference = True
+            raise
         t0 = time.perf_counter()
         try:
-            image = self.decoder.decode(payload.video, payload.frame_id)
+            image = decoding.result()
         except VideoError:
             if not is_reference:
                 self._needs_reference = True  # the decoder waits for the next IDR, i.e. the next reference
             raise
-        ms["video"] = (time.perf_counter() - t0) * 1e3
+        ms["video"] = (time.perf_counter() - t0) * 1e3      # what the frame waited for it
+        ms["video_decode"] = self.decoder.decode_ms           # its own time, mostly beside the work above
         if image is None:
             self._needs_reference = True
             raise VideoError(f"frame {payload.frame_id}: the video decoder is waiting for a keyframe")
-        layers = self._check_layers(frame, image.width, image.height)
+        self._check_rects(frame, image.width, image.height)
+        layers = list(zip(frame.layers, cameras))
 
         t0 = time.perf_counter()
-        kinds = [l.kind for l in frame.layers]
         if is_reference:
-            visible = frame.layers[kinds.index(LayerKind.VISIBLE)]
-            self.cache = QuadCache(visible.width, visible.height)
-            self.cache.reset(visible.quads)
-            self.reference_camera = layers[kinds.index(LayerKind.VISIBLE)][1]
+            self.cache = cache
+            self.reference_camera = cameras[kinds.index(LayerKind.VISIBLE)]
             self.reference_rect = visible.atlas_rect
             # The far field comes with reference frames and stays until the next one (its colour is in every
             # frame's atlas); the same MeshLayer objects, so the mesh keeps its buffers.
@@ -110,13 +133,13 @@ class QuasarClient(MethodClient):
                                for l, cam in layers if l.kind == LayerKind.FAR]
             self.reference_id = payload.frame_id
         elif LayerKind.UPDATED in kinds:
-            self.cache.update(frame.layers[kinds.index(LayerKind.UPDATED)].quads)
+            self.cache.apply(update)
         mesh_layers = [MeshLayer(self.cache.quads, self.reference_camera, self.reference_rect, edit=self.cache.edit,
                                  cached=True)]
         mesh_layers += [MeshLayer(l.quads, cam, l.atlas_rect, FILL_DEPTH_SCALE.get(l.kind, 1.0)) for l, cam in layers
                         if l.kind in (LayerKind.REVEALED, LayerKind.HIDDEN, LayerKind.WIDE)]
         mesh_layers += self.far_layers
-        ms["quad_update"] = (time.perf_counter() - t0) * 1e3
+        ms["quad_update"] = quad_ms + (time.perf_counter() - t0) * 1e3
 
         t0 = time.perf_counter()
         self.atlas_texture.write(image)
@@ -135,18 +158,28 @@ class QuasarClient(MethodClient):
         self.stats = {"ms": ms, "cache_quads": len(self.cache), "cache_bytes": self.cache.nbytes,
                       "mesh_quads": self.mesh.quad_count}
 
-    def _check_layers(self, frame: QuadFrame, atlas_w: int, atlas_h: int) -> list:
+    @staticmethod
+    def _layer_cameras(frame: QuadFrame) -> list[Camera]:
+        """Each layer's camera; ProtocolError naming the layer if one is not a camera."""
         out = []
+        for i, layer in enumerate(frame.layers):
+            try:
+                out.append(Camera.from_array(layer.camera, layer.width, layer.height))
+            except ValueError as exc:
+                raise ProtocolError(f"layer {i}: bad camera: {exc}") from None
+        return out
+
+    @staticmethod
+    def _check_rects(frame: QuadFrame, atlas_w: int, atlas_h: int) -> None:
+        """ProtocolError if a layer's atlas rect leaves the decoded video."""
         for i, layer in enumerate(frame.layers):
             x, y, w, h = layer.atlas_rect
             if x + w > atlas_w or y + h > atlas_h:
                 raise ProtocolError(f"layer {i}: atlas rect {layer.atlas_rect} outside the {atlas_w}x{atlas_h} video")
-            try:
-                cam = Camera.from_array(layer.camera, layer.width, layer.height)
-            except ValueError as exc:
-                raise ProtocolError(f"layer {i}: bad camera: {exc}") from None
-            out.append((layer, cam))
-        return out
+
+    def close(self) -> None:
+        """Stop the decoding thread (the GL objects go with the context)."""
+        self._video_thread.shutdown(wait=True)
 
     def render(self, pose: Pose) -> np.ndarray:
         t0 = time.perf_counter()

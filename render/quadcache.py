@@ -44,11 +44,13 @@ class QuadCache:
         return int(sum(getattr(q, f).nbytes for f in ("x", "y", "size_log2", "flattened", "alpha", "normal",
                                                       "depth", "offsets")) + self.index_map.nbytes)
 
-    def _rasterize(self, quads: QuadSet, first_index: int) -> tuple[np.ndarray, np.ndarray]:
-        """Let each quad own the pixels it covers, in the order a loop would write them -- the 1-pixel quads by
-        index, then the larger ones by index: where quads overlap (a malformed layer), the last one written wins.
-        Vectorized per size class; the write order is kept by taking, per pixel, the writer of highest rank.
-        Returns the pixels written (flat indices, each once) and the quad each held before (-1: none)."""
+    def _rasterize(self, quads: QuadSet, first_index: int, index_map: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Let each quad own the pixels it covers in `index_map` (the cache's own unless given), in the order a loop
+        would write them -- the 1-pixel quads by index, then the larger ones by index: where quads overlap (a
+        malformed layer), the last one written wins. Vectorized per size class; the write order is kept by
+        taking, per pixel, the writer of highest rank. Returns the pixels written (flat indices, each once) and
+        the quad each held before (-1: none)."""
         n = len(quads)
         if n == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int32)
@@ -74,7 +76,7 @@ class QuadCache:
             pixels.append((py * self.width + px)[ok])
             ranks.append(np.broadcast_to(rank[sel, None], py.shape)[ok])
         pixels, ranks = np.concatenate(pixels), np.concatenate(ranks)
-        flat = self.index_map.reshape(-1)
+        flat = (self.index_map if index_map is None else index_map).reshape(-1)
         if pixels.size < flat.size // 8:    # a residual frame's few quads: sort, the last write per pixel
             o = np.lexsort((ranks, pixels))
             last = o[np.r_[pixels[o][1:] != pixels[o][:-1], True]]
@@ -139,27 +141,57 @@ class QuadCache:
     def update(self, quads: QuadSet) -> int:
         """A residual frame's updated quads: append them, let them own their pixels, free quads left with none.
         Returns how many quads were freed."""
+        return self.apply(self.plan_update(quads))
+
+    def plan_update(self, quads: QuadSet) -> "CacheUpdate":
+        """What `update(quads)` would make of the cache, worked out without changing it (`apply` makes it so):
+        a client works it out while its video decodes and keeps the old cache if the frame turns out bad."""
         if len(quads) == 0:
-            return 0
+            return CacheUpdate(self, None, self.quads, self.edit, self._owned_pixels, 0)
         n_old = len(self.quads)
-        written, before = self._rasterize(quads, n_old)
+        index_map = self.index_map.copy()
+        written, before = self._rasterize(quads, n_old, index_map)
         combined = QuadSet.concatenate([self.quads, quads])
         # pixels per quad: what each held, less what the update took, plus what it wrote (only the written
         # pixels are counted, not the whole map)
         n = len(combined)
         pixels = np.concatenate([self._owned_pixels, np.zeros(len(quads), np.int64)])
         pixels -= np.bincount(before[before >= 0], minlength=n)
-        pixels += np.bincount(self.index_map.reshape(-1)[written], minlength=n)
+        pixels += np.bincount(index_map.reshape(-1)[written], minlength=n)
         owned = pixels > 0
         freed = int((~owned).sum())
-        self.edit = QuadSetEdit(self.quads, quads, owned if freed else None)
+        edit = QuadSetEdit(self.quads, quads, owned if freed else None)
         if freed:
             # new index of every old one, -1 for a freed quad; index -1 (no quad) wraps to the table's last entry
             remap = np.concatenate([np.where(owned, np.cumsum(owned) - 1, -1), [-1]]).astype(np.int32)
             combined = combined.select(owned)
             pixels = pixels[owned]
-            np.take(remap, self.index_map, out=self.index_map, mode="wrap")
-        self.quads = combined
-        self._owned_pixels = pixels
-        self.freed_total += freed
-        return freed
+            np.take(remap, index_map, out=index_map, mode="wrap")
+        return CacheUpdate(self, index_map, combined, edit, pixels, freed)
+
+    def apply(self, plan: "CacheUpdate") -> int:
+        """Make a `plan_update` of this cache, unchanged since, so; returns how many quads it freed."""
+        if plan.cache is not self:
+            raise ValueError("QuadCache.apply: the plan was made for another cache")
+        if plan.index_map is None:          # nothing was updated
+            return 0
+        if plan.edit.previous is not self.quads:
+            raise ValueError("QuadCache.apply: the plan was made for an older state of this cache")
+        self.index_map = plan.index_map
+        self.quads, self.edit, self._owned_pixels = plan.quads, plan.edit, plan.owned_pixels
+        self.freed_total += plan.freed
+        return plan.freed
+
+
+@dataclass(frozen=True)
+class CacheUpdate:
+    """A residual frame's change to a `QuadCache`, worked out (`QuadCache.plan_update`) but not yet made
+    (`QuadCache.apply`): the index map, quads, edit and owned-pixel counts the cache will have, and how many
+    quads it frees."""
+
+    cache: QuadCache
+    index_map: np.ndarray | None       # None: the update was empty and changes nothing
+    quads: QuadSet
+    edit: QuadSetEdit | None
+    owned_pixels: np.ndarray
+    freed: int

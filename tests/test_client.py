@@ -293,3 +293,25 @@ def test_eval_stereo_summary():
     assert 0.0 < st["cost_ratio"] < 10.0
     with pytest.raises(ValueError, match="keeps no depth"):
         run_eval(EvalSpec(method="meshwarp", stereo=True, **spec))
+
+
+def test_video_decodes_beside_the_geometry_and_a_refused_geometry_asks_for_a_reference(ctx, stream):
+    """The atlas decodes on the client's own thread while the caller parses the geometry; a residual frame whose
+    geometry is refused has had its video decoded, so the client asks for a reference (its cache would miss that
+    frame's updates) and shows the last good state meanwhile."""
+    import threading
+    client = QuasarClient(W, H, ctx=ctx)
+    threads = []
+    decode = client.decoder.decode
+    client.decoder.decode = lambda *args: threads.append(threading.get_ident()) or decode(*args)
+    client.receive(stream[0])
+    client.receive(stream[1])
+    assert len(threads) == 2 and threading.get_ident() not in threads
+    assert {"video", "video_decode"} <= set(client.stats["ms"])
+    pose = walk_pose(0.05)
+    before = client.render(pose)
+    with pytest.raises(ProtocolError):
+        client.receive(with_(stream[2], geometry=stream[2].geometry[:len(stream[2].geometry) // 2]))
+    assert len(threads) == 3 and client.needs_reference
+    assert np.array_equal(client.render(pose), before)
+    client.close()

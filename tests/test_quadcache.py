@@ -116,3 +116,31 @@ def test_cache_reset_of_a_tiling_matches_the_loop(overlap, monkeypatch):
     np.testing.assert_array_equal(cache.index_map, reference)
     assert (reference >= 0).all()
     np.testing.assert_array_equal(cache._owned_pixels, np.bincount(reference.ravel(), minlength=len(quads)))
+
+
+def test_a_planned_update_changes_nothing_until_applied():
+    """`plan_update` leaves the cache as it was (a client works it out while its video decodes, and drops it if
+    the frame is bad); `apply` then gives what `update` gives; a plan for an older state is refused."""
+    rng = np.random.default_rng(7)
+    w, h = 96, 54
+    planned, updated = QuadCache(w, h), QuadCache(w, h)
+    first = random_quads(rng, 400, w, h, 3)
+    planned.reset(first)
+    updated.reset(first)
+    for k in (40, 0, 90, 3):
+        update = random_quads(rng, k, w, h, 3)
+        before_map, before_quads, before_edit = planned.index_map.copy(), planned.quads, planned.edit
+        plan = planned.plan_update(update)
+        np.testing.assert_array_equal(planned.index_map, before_map)
+        assert planned.quads is before_quads and planned.edit is before_edit
+        assert planned.apply(plan) == updated.update(update)
+        np.testing.assert_array_equal(planned.index_map, updated.index_map)
+        assert len(planned) == len(updated)
+        for field in ("x", "y", "size_log2", "depth"):
+            np.testing.assert_array_equal(getattr(planned.quads, field), getattr(updated.quads, field))
+    stale = planned.plan_update(random_quads(rng, 5, w, h, 2))
+    planned.update(random_quads(rng, 5, w, h, 2))
+    with pytest.raises(ValueError, match="older state"):
+        planned.apply(stale)
+    with pytest.raises(ValueError, match="another cache"):
+        updated.apply(planned.plan_update(random_quads(rng, 5, w, h, 2)))
