@@ -76,7 +76,7 @@ class QuasarClient(MethodClient):
         The atlas decodes on a thread of its own (FFmpeg runs without the GIL) while this one parses the geometry
         and works out the cache's next state; nothing the display shows changes until both are done and valid.
         A frame whose geometry is refused after its video was decoded leaves the decoder past it, so the client
-        then needs a reference frame."""
+        then needs a reference frame, as after a refused video."""
         ms: dict[str, float] = {}
         if payload.method != self.method:
             raise ProtocolError(f"{self.name} client got a {payload.method.name} payload")
@@ -93,7 +93,6 @@ class QuasarClient(MethodClient):
             kinds = [l.kind for l in frame.layers]
             if is_reference and LayerKind.VISIBLE not in kinds:
                 raise ProtocolError("reference frame has no visible layer")
-            cameras = self._layer_cameras(frame)
             t0 = time.perf_counter()
             # the cache's next state, kept only if the whole frame is good
             if is_reference:
@@ -107,19 +106,18 @@ class QuasarClient(MethodClient):
             concurrent.futures.wait([decoding])
             self._needs_reference = True
             raise
-        t0 = time.perf_counter()
         try:
+            t0 = time.perf_counter()
             image = decoding.result()
-        except VideoError:
-            if not is_reference:
-                self._needs_reference = True  # the decoder waits for the next IDR, i.e. the next reference
+            ms["video"] = (time.perf_counter() - t0) * 1e3      # what the frame waited for it
+            ms["video_decode"] = self.decoder.decode_ms           # its own time, mostly beside the work above
+            if image is None:
+                raise VideoError(f"frame {payload.frame_id}: the video decoder is waiting for a keyframe")
+            cameras = self._layer_cameras(frame)
+            self._check_rects(frame, image.width, image.height)
+        except BaseException:
+            self._needs_reference = True    # the decoder is past this frame, or waits for the next IDR
             raise
-        ms["video"] = (time.perf_counter() - t0) * 1e3      # what the frame waited for it
-        ms["video_decode"] = self.decoder.decode_ms           # its own time, mostly beside the work above
-        if image is None:
-            self._needs_reference = True
-            raise VideoError(f"frame {payload.frame_id}: the video decoder is waiting for a keyframe")
-        self._check_rects(frame, image.width, image.height)
         layers = list(zip(frame.layers, cameras))
 
         t0 = time.perf_counter()
