@@ -141,15 +141,19 @@ class QuadCache:
     def update(self, quads: QuadSet) -> int:
         """A residual frame's updated quads: append them, let them own their pixels, free quads left with none.
         Returns how many quads were freed."""
-        return self.apply(self.plan_update(quads))
+        return self.apply(self._plan(quads, self.index_map))
 
     def plan_update(self, quads: QuadSet) -> "CacheUpdate":
         """What `update(quads)` would make of the cache, worked out without changing it (`apply` makes it so):
         a client works it out while its video decodes and keeps the old cache if the frame turns out bad."""
+        return self._plan(quads, self.index_map.copy())
+
+    def _plan(self, quads: QuadSet, index_map: np.ndarray) -> "CacheUpdate":
+        """`plan_update`, writing the new index map into `index_map` (a copy of the cache's, or the cache's own when
+        the plan is applied at once)."""
         if len(quads) == 0:
             return CacheUpdate(self, None, self.quads, self.edit, self._owned_pixels, 0)
         n_old = len(self.quads)
-        index_map = self.index_map.copy()
         written, before = self._rasterize(quads, n_old, index_map)
         combined = QuadSet.concatenate([self.quads, quads])
         # pixels per quad: what each held, less what the update took, plus what it wrote (only the written
