@@ -187,7 +187,9 @@ class DeferredRenderer:
         self._shadow_time: float | None = None
         self._animated_casters = any(o.cast_shadow and o.animation is not None for o in scene.objects)
         self._animated_boxes = any(o.animation is not None for o in scene.objects)
-        self._world_boxes: np.ndarray | None = None     # (n, 8, 4) world-space box corners (static scenes: once)
+        self._world_boxes: np.ndarray | None = None     # (n, 8, 4) world-space box corners at _boxes_time
+        self._boxes_time: float | None = None
+        self._animated_objects = [i for i, o in enumerate(scene.objects) if o.animation is not None]
         self._gbuffers: dict[tuple[int, int], GBuffer] = {}
 
     # ----------------------------------------------------------------------------------------- passes
@@ -265,14 +267,24 @@ class DeferredRenderer:
             self._gbuffers[key] = GBuffer(self.ctx, *key)
         return self._gbuffers[key]
 
+    def _boxes_at(self, t: float) -> np.ndarray:
+        """(n_objects, 8, 4) world-space corners of every object's bounding box at time t: a static object's once,
+        an animated one's again for each new t (a frame's passes share it)."""
+        if self._world_boxes is None:
+            self._world_boxes = np.stack([np.c_[gm.box_corners, np.ones(8)] @ obj.model_matrix(t).T
+                                          for obj, gm in zip(self.scene.objects, self.meshes)])
+            self._boxes_time = t
+        elif self._animated_boxes and self._boxes_time != t:
+            for i in self._animated_objects:
+                obj, gm = self.scene.objects[i], self.meshes[i]
+                self._world_boxes[i] = np.c_[gm.box_corners, np.ones(8)] @ obj.model_matrix(t).T
+            self._boxes_time = t
+        return self._world_boxes
+
     def visible_objects(self, camera: Camera, t: float) -> np.ndarray:
         """(n_objects,) bools: the objects whose bounding box is not wholly outside one plane of the camera's
         frustum at time t. The others cannot draw a fragment: skipping them leaves the image as it is."""
-        if self._world_boxes is None or self._animated_boxes:
-            boxes = np.stack([np.c_[gm.box_corners, np.ones(8)] @ obj.model_matrix(t).T
-                              for obj, gm in zip(self.scene.objects, self.meshes)])    # (n, 8, 4)
-            self._world_boxes = boxes
-        clip = self._world_boxes @ (camera.projection_matrix() @ camera.view_matrix()).T  # (n, 8, 4)
+        clip = self._boxes_at(t) @ (camera.projection_matrix() @ camera.view_matrix()).T  # (n, 8, 4)
         x, y, z, w = np.moveaxis(clip, -1, 0)
         outside = ((x < -w).all(1) | (x > w).all(1) | (y < -w).all(1) | (y > w).all(1)
                    | (z < -w).all(1) | (z > w).all(1))

@@ -123,6 +123,17 @@ def test_objects_outside_the_frustum_are_skipped_without_changing_the_image(cour
                                                      zip(courtyard_renderer.scene.objects, shown) if s}
 
 
+
+def test_object_boxes_follow_the_animated_objects_from_time_to_time(courtyard_renderer):
+    """The frustum test's world boxes are kept per time: an animated object's box is moved again for every new t
+    (a frame's passes share one), a static object's never changes."""
+    r = courtyard_renderer
+    assert 0 < len(r._animated_objects) < len(r.scene.objects)
+    for t in (1.0, 2.5, 2.5, 0.0, 1.0):
+        want = np.stack([np.c_[gm.box_corners, np.ones(8)] @ o.model_matrix(t).T
+                         for o, gm in zip(r.scene.objects, r.meshes)])
+        np.testing.assert_array_equal(r._boxes_at(t), want)
+
 def _world_points(cam, depth):
     h, w = depth.shape
     ys, xs = np.mgrid[0:h, 0:w] + 0.5
