@@ -62,19 +62,29 @@ class Pose:
     def rotation(self) -> Rotation:
         return Rotation.from_quat(self.quat)
 
+    def rotation_matrix(self) -> np.ndarray:
+        """The orientation as a 3x3 matrix (camera axes as columns), worked out once per pose: the renderer asks
+        for view matrices many times a frame, and scipy's Rotation costs tens of microseconds a call."""
+        m = self.__dict__.get("_rotation_matrix")
+        if m is None:
+            m = self.rotation.as_matrix()
+            m.flags.writeable = False
+            object.__setattr__(self, "_rotation_matrix", m)
+        return m
+
     @property
     def forward(self) -> np.ndarray:
         return self.rotation.apply([0.0, 0.0, -1.0])
 
     def camera_to_world(self) -> np.ndarray:
         m = np.eye(4)
-        m[:3, :3] = self.rotation.as_matrix()
+        m[:3, :3] = self.rotation_matrix()
         m[:3, 3] = self.position
         return m
 
     def view_matrix(self) -> np.ndarray:
         """World -> view transform."""
-        r = self.rotation.as_matrix()
+        r = self.rotation_matrix()
         m = np.eye(4)
         m[:3, :3] = r.T
         m[:3, 3] = -r.T @ self.position

@@ -189,12 +189,28 @@ class DeferredRenderer:
         self._animated_boxes = any(o.animation is not None for o in scene.objects)
         self._world_boxes: np.ndarray | None = None     # (n, 8, 4) world-space box corners at _boxes_time
         self._boxes_time: float | None = None
+        self._models: list[np.ndarray] | None = None     # every object's model matrix at _models_time
+        self._model_bytes: list[bytes] = []              # the same as uploaded
+        self._models_time: float | None = None
+        self._light_vp: tuple | None = None             # (the sun's parameters, its shadow-map projection)
+        self._floor: float | None = None                # the scene's lowest point (moving_region's shadows)
         self._animated_objects = [i for i, o in enumerate(scene.objects) if o.animation is not None]
         self._gbuffers: dict[tuple[int, int], GBuffer] = {}
 
     # ----------------------------------------------------------------------------------------- passes
     def light_view_projection(self) -> np.ndarray:
+        """The sun's shadow-map projection (kept while the sun stays as it is)."""
         sun = self.scene.sun
+        key = (*np.asarray(sun.direction, np.float64), float(sun.shadow_extent),
+               *np.asarray(sun.shadow_center, np.float64))
+        if self._light_vp is None or self._light_vp[0] != key:
+            matrix = self._light_view_projection(sun)
+            matrix.flags.writeable = False
+            self._light_vp = (key, matrix)
+        return self._light_vp[1]
+
+    @staticmethod
+    def _light_view_projection(sun) -> np.ndarray:
         d = np.asarray(sun.direction, np.float64) / np.linalg.norm(sun.direction)
         e = sun.shadow_extent
         from quadcast.render.camera import Pose
@@ -223,9 +239,9 @@ class DeferredRenderer:
         self.shadow_fbo.clear(depth=1.0)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
-        for obj, gm in zip(self.scene.objects, self.meshes):
+        for obj, gm, model in zip(self.scene.objects, self.meshes, self._models_at(t)):
             if obj.cast_shadow:
-                self.shadow_prog["u_light_mvp"].write(gl_matrix(light_vp @ obj.model_matrix(t)))
+                self.shadow_prog["u_light_mvp"].write(gl_matrix(light_vp @ model))
                 gm.shadow_vao.render(moderngl.TRIANGLES)
         self._shadow_time = t
 
@@ -238,7 +254,9 @@ class DeferredRenderer:
         scene, w, h = self.scene, camera.width, camera.height
         sun = np.asarray(scene.sun.direction, np.float64)
         sun = sun / np.linalg.norm(sun)
-        floor = float(scene.bounds()[0][1])
+        if self._floor is None:
+            self._floor = float(scene.bounds()[0][1])
+        floor = self._floor
         points = []
         for obj, gm in zip(scene.objects, self.meshes):
             if obj.animation is None:
@@ -267,17 +285,31 @@ class DeferredRenderer:
             self._gbuffers[key] = GBuffer(self.ctx, *key)
         return self._gbuffers[key]
 
+    def _models_at(self, t: float) -> list[np.ndarray]:
+        """Every object's model matrix at time t: a static object's once, an animated one's again for each new t
+        (a frame's passes share them)."""
+        if self._models is None or self._animated_objects and self._models_time != t:
+            if self._models is None:
+                self._models = [o.model_matrix(t) for o in self.scene.objects]
+                self._model_bytes = [gl_matrix(m) for m in self._models]
+            else:
+                for i in self._animated_objects:
+                    self._models[i] = self.scene.objects[i].model_matrix(t)
+                    self._model_bytes[i] = gl_matrix(self._models[i])
+            self._models_time = t
+        return self._models
+
     def _boxes_at(self, t: float) -> np.ndarray:
-        """(n_objects, 8, 4) world-space corners of every object's bounding box at time t: a static object's once,
-        an animated one's again for each new t (a frame's passes share it)."""
+        """(n_objects, 8, 4) world-space corners of every object's bounding box at time t, kept as `_models_at`
+        keeps the matrices."""
+        models = self._models_at(t)
         if self._world_boxes is None:
-            self._world_boxes = np.stack([np.c_[gm.box_corners, np.ones(8)] @ obj.model_matrix(t).T
-                                          for obj, gm in zip(self.scene.objects, self.meshes)])
+            self._world_boxes = np.stack([np.c_[gm.box_corners, np.ones(8)] @ m.T
+                                          for m, gm in zip(models, self.meshes)])
             self._boxes_time = t
-        elif self._animated_boxes and self._boxes_time != t:
+        elif self._animated_objects and self._boxes_time != t:
             for i in self._animated_objects:
-                obj, gm = self.scene.objects[i], self.meshes[i]
-                self._world_boxes[i] = np.c_[gm.box_corners, np.ones(8)] @ obj.model_matrix(t).T
+                self._world_boxes[i] = np.c_[self.meshes[i].box_corners, np.ones(8)] @ models[i].T
             self._boxes_time = t
         return self._world_boxes
 
@@ -296,12 +328,13 @@ class DeferredRenderer:
         prog = prog or self.geometry_prog
         set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
         visible = self.visible_objects(camera, t)
-        for obj, gm, shown in zip(self.scene.objects, self.meshes, visible):
+        self._models_at(t)
+        for obj, gm, shown, model in zip(self.scene.objects, self.meshes, visible, self._model_bytes):
             if not shown:
                 continue
             mat = gm.material
             gm.texture.use(0)
-            set_uniforms(prog, u_model=gl_matrix(obj.model_matrix(t)), u_texture=0,
+            set_uniforms(prog, u_model=model, u_texture=0,
                          u_base_color=tuple(float(c) for c in mat.base_color), u_uv_mode=gm.uv_mode,
                          u_uv_scale=float(mat.uv_scale), u_specular=float(mat.specular),
                          u_shininess=float(max(mat.shininess, 1.0)),

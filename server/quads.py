@@ -16,7 +16,7 @@ import moderngl
 import numpy as np
 
 from quadcast.protocol.frame import FrameStats
-from quadcast.protocol.quads import QuadFrame, QuadSet, packed_size_bits_per_quad
+from quadcast.protocol.quads import PACKED_BITS_PER_QUAD, QuadFrame, QuadSet
 from quadcast.render.camera import Camera
 from quadcast.render.gl import compute, read_buffer, set_uniforms
 from quadcast.render.quadmesh import QUAD_FLOATS
@@ -81,7 +81,7 @@ def quad_stats(frame: QuadFrame, ms: dict[str, float], cache_quads: int = 0) -> 
                       quads_per_layer={f"{i}:{layer.kind.name.lower()}": n
                                        for i, (layer, n) in enumerate(zip(frame.layers, counts))},
                       offsets=int(frame.offset_count),
-                      bits_per_quad_raw=packed_size_bits_per_quad(frame) if frame.quad_count else 0.0,
+                      bits_per_quad_raw=float(PACKED_BITS_PER_QUAD) if frame.quad_count else 0.0,   # fixed columns
                       cache_quads=cache_quads)
 
 
