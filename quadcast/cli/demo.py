@@ -159,7 +159,8 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
         print(f"demo: {s['method']} on {s['trace']} in {s['scene']} at {s['size']}, {s['duration_s']:.1f} s live: "
               f"{s['mbps']:.2f} Mbps on the socket (video {s['mbps_video']:.2f}, geometry {s['mbps_geometry']:.2f}), "
               f"{s['server_frames']} frames received = {s['server_frames'] / max(s['duration_s'], 1e-9):.1f} server "
-              f"frames/s")
+              f"frames/s; the client showed {s['display_frames']} frames = "
+              f"{s['display_frames'] / max(s['duration_s'], 1e-9):.0f} a second (its loop aims at 60)")
         from quadcast.sim.report import format_figure as fmt
         print(f"demo: FLIP {fmt(s['flip'], '.4f')}  SSIM {fmt(s['ssim'], '.4f')}  PSNR {fmt(s['psnr'], '.2f')} dB "
               f"over {s['frames']} scored frames")
