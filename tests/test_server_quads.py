@@ -12,7 +12,7 @@ from quadcast.render.camera import Camera, Pose
 from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 from quadcast.render.renderer import DeferredRenderer
 from quadcast.render.scene import scene_from_dict
-from quadcast.server.quads import QuadGenerator, QuadParams
+from quadcast.server.quads import QUAD_FLOATS, QuadGenerator, QuadParams, gathered_to_quadset
 from quadcast.server.quasar import QuasarServer, QuasarSettings
 
 
@@ -329,3 +329,20 @@ def test_wide_view_widens_when_frames_come_far_apart(courtyard_renderer):
     with pytest.raises(ValueError, match="wide_fovy_max_deg"):
         QuasarSettings(wide_fovy_deg=130.0)
     server.close()
+
+
+def test_gathered_quads_come_out_by_size_then_row_then_column():
+    """The GPU appends quads in any order; the server's QuadSet orders them by size, then y, then x, exactly as
+    np.lexsort on those columns does (the payload must not depend on the GPU's scheduling)."""
+    rng = np.random.default_rng(3)
+    n = 5000
+    rows = np.zeros((n, QUAD_FLOATS), np.float32)
+    head = rows[:, :4].view(np.uint32)
+    head[:, 0], head[:, 1] = rng.integers(0, 960, n), rng.integers(0, 540, n)
+    head[:, 2], head[:, 3] = rng.integers(0, 6, n), 1
+    rows[:, 6], rows[:, 7] = 1.0, np.arange(n)          # unit normals; the depth tells which row went where
+    quads = gathered_to_quadset(rows)
+    order = np.lexsort((head[:, 0], head[:, 1], head[:, 2]))
+    np.testing.assert_array_equal(quads.depth, np.arange(n, dtype=np.float32)[order])
+    keys = np.stack([quads.size_log2, quads.y, quads.x], axis=1).astype(np.int64)
+    assert (np.diff(keys[:, 0] * 10**8 + keys[:, 1] * 10**4 + keys[:, 2]) >= 0).all()
