@@ -96,6 +96,21 @@ def grow_mask(mask: np.ndarray) -> np.ndarray:
     return grown
 
 
+def tile_levels(active: np.ndarray, levels: int) -> list[np.ndarray]:
+    """Per level l < `levels`, the sorted (ty << 16) | tx codes of the tiles of level l (2^l level-0 tiles across)
+    that hold an `active` ((th, tw) bools) level-0 tile: each level's grid is the one below pooled 2 x 2."""
+    out = []
+    for level in range(levels):
+        ty, tx = np.nonzero(active)
+        out.append(ty.astype(np.uint32) << 16 | tx.astype(np.uint32))
+        h, w = active.shape
+        if level + 1 < levels:
+            even = np.zeros((h + (h & 1), w + (w & 1)), bool)
+            even[:h, :w] = active
+            active = even.reshape(even.shape[0] // 2, 2, even.shape[1] // 2, 2).any(axis=(1, 3))
+    return out
+
+
 def tile_ring(codes: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
     """The (ty << 16) | tx codes of the tiles of a (tw, th) grid that touch one of `codes` (8-neighbourhood) but
     are not among them."""
@@ -177,12 +192,7 @@ class QuadGenerator:
             active &= padded.reshape(th, TILE, tw, TILE).any(axis=(1, 3))
         if inner is not None:
             active &= ~self._inside_tiles(camera, inner)
-        ty, tx = np.nonzero(active)
-        levels = []
-        for level in range(self.levels):
-            codes = np.unique((ty >> level).astype(np.uint32) << 16 | (tx >> level).astype(np.uint32))
-            levels.append(codes)
-        return levels
+        return tile_levels(active, self.levels)
 
     def _inside_tiles(self, camera: Camera, inner: Camera) -> np.ndarray:
         """(th, tw) bools: tiles whose every pixel centre is a pixel or more inside `inner`'s frustum (as the

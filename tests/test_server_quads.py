@@ -12,7 +12,7 @@ from quadcast.render.camera import Camera, Pose
 from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 from quadcast.render.renderer import DeferredRenderer
 from quadcast.render.scene import scene_from_dict
-from quadcast.server.quads import QUAD_FLOATS, QuadGenerator, QuadParams, gathered_to_quadset
+from quadcast.server.quads import QUAD_FLOATS, QuadGenerator, QuadParams, gathered_to_quadset, tile_levels
 from quadcast.server.quasar import QuasarServer, QuasarSettings
 
 
@@ -346,3 +346,18 @@ def test_gathered_quads_come_out_by_size_then_row_then_column():
     np.testing.assert_array_equal(quads.depth, np.arange(n, dtype=np.float32)[order])
     keys = np.stack([quads.size_log2, quads.y, quads.x], axis=1).astype(np.int64)
     assert (np.diff(keys[:, 0] * 10**8 + keys[:, 1] * 10**4 + keys[:, 2]) >= 0).all()
+
+
+def test_tile_levels_are_the_level_0_tiles_shifted_and_deduplicated():
+    """Each level's tile codes (pooled 2 x 2 from the level below) are the sorted, distinct codes of the active
+    level-0 tiles shifted right by the level, odd grid sizes included."""
+    rng = np.random.default_rng(11)
+    for _ in range(50):
+        th, tw = int(rng.integers(1, 70)), int(rng.integers(1, 125))
+        active = rng.random((th, tw)) < rng.random()
+        ty, tx = np.nonzero(active)
+        got = tile_levels(active, 9)
+        for level, codes in enumerate(got):
+            want = np.unique((ty >> level).astype(np.uint32) << 16 | (tx >> level).astype(np.uint32))
+            np.testing.assert_array_equal(codes, want)
+            assert codes.dtype == np.uint32
