@@ -164,6 +164,16 @@ def _gl_rect(region: tuple[int, int, int, int], height: int) -> tuple[int, int, 
     return (int(x), int(height - y - h), int(w), int(h))
 
 
+@dataclass
+class _Placement:
+    """Where a renderer's objects are at time `t` (DeferredRenderer._objects_at)."""
+
+    t: float
+    models: list[np.ndarray]          # model matrices, one per object
+    model_bytes: list[bytes]          # the same as uploaded (gl_matrix)
+    boxes: np.ndarray                 # (n, 8, 4) world-space bounding-box corners
+
+
 class DeferredRenderer:
     """Renders a `Scene` from any `Camera` at any time; G-buffers are allocated per image size and reused."""
 
@@ -186,12 +196,7 @@ class DeferredRenderer:
         self.shadow_fbo = ctx.framebuffer(depth_attachment=self.shadow_map)
         self._shadow_time: float | None = None
         self._animated_casters = any(o.cast_shadow and o.animation is not None for o in scene.objects)
-        self._animated_boxes = any(o.animation is not None for o in scene.objects)
-        self._world_boxes: np.ndarray | None = None     # (n, 8, 4) world-space box corners at _boxes_time
-        self._boxes_time: float | None = None
-        self._models: list[np.ndarray] | None = None     # every object's model matrix at _models_time
-        self._model_bytes: list[bytes] = []              # the same as uploaded
-        self._models_time: float | None = None
+        self._placement: _Placement | None = None       # the objects' matrices and boxes at one time
         self._light_vp: tuple | None = None             # (the sun's parameters, its shadow-map projection)
         self._floor: float | None = None                # the scene's lowest point (moving_region's shadows)
         self._animated_objects = [i for i, o in enumerate(scene.objects) if o.animation is not None]
@@ -239,7 +244,7 @@ class DeferredRenderer:
         self.shadow_fbo.clear(depth=1.0)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
-        for obj, gm, model in zip(self.scene.objects, self.meshes, self._models_at(t)):
+        for obj, gm, model in zip(self.scene.objects, self.meshes, self._objects_at(t).models):
             if obj.cast_shadow:
                 self.shadow_prog["u_light_mvp"].write(gl_matrix(light_vp @ model))
                 gm.shadow_vao.render(moderngl.TRIANGLES)
@@ -285,38 +290,27 @@ class DeferredRenderer:
             self._gbuffers[key] = GBuffer(self.ctx, *key)
         return self._gbuffers[key]
 
-    def _models_at(self, t: float) -> list[np.ndarray]:
-        """Every object's model matrix at time t: a static object's once, an animated one's again for each new t
-        (a frame's passes share them)."""
-        if self._models is None or self._animated_objects and self._models_time != t:
-            if self._models is None:
-                self._models = [o.model_matrix(t) for o in self.scene.objects]
-                self._model_bytes = [gl_matrix(m) for m in self._models]
-            else:
-                for i in self._animated_objects:
-                    self._models[i] = self.scene.objects[i].model_matrix(t)
-                    self._model_bytes[i] = gl_matrix(self._models[i])
-            self._models_time = t
-        return self._models
-
-    def _boxes_at(self, t: float) -> np.ndarray:
-        """(n_objects, 8, 4) world-space corners of every object's bounding box at time t, kept as `_models_at`
-        keeps the matrices."""
-        models = self._models_at(t)
-        if self._world_boxes is None:
-            self._world_boxes = np.stack([np.c_[gm.box_corners, np.ones(8)] @ m.T
-                                          for m, gm in zip(models, self.meshes)])
-            self._boxes_time = t
-        elif self._animated_objects and self._boxes_time != t:
+    def _objects_at(self, t: float) -> "_Placement":
+        """Every object's model matrix (and its uploaded bytes) and world-space box at time t: a static object's
+        worked out once, an animated one's again for each new t (all passes of a frame share them)."""
+        placed = self._placement
+        if placed is None:
+            models = [o.model_matrix(t) for o in self.scene.objects]
+            placed = self._placement = _Placement(
+                t, models, [gl_matrix(m) for m in models],
+                np.stack([np.c_[gm.box_corners, np.ones(8)] @ m.T for m, gm in zip(models, self.meshes)]))
+        elif self._animated_objects and placed.t != t:
             for i in self._animated_objects:
-                self._world_boxes[i] = np.c_[self.meshes[i].box_corners, np.ones(8)] @ models[i].T
-            self._boxes_time = t
-        return self._world_boxes
+                m = placed.models[i] = self.scene.objects[i].model_matrix(t)
+                placed.model_bytes[i] = gl_matrix(m)
+                placed.boxes[i] = np.c_[self.meshes[i].box_corners, np.ones(8)] @ m.T
+            placed.t = t
+        return placed
 
     def visible_objects(self, camera: Camera, t: float) -> np.ndarray:
         """(n_objects,) bools: the objects whose bounding box is not wholly outside one plane of the camera's
         frustum at time t. The others cannot draw a fragment: skipping them leaves the image as it is."""
-        clip = self._boxes_at(t) @ (camera.projection_matrix() @ camera.view_matrix()).T  # (n, 8, 4)
+        clip = self._objects_at(t).boxes @ (camera.projection_matrix() @ camera.view_matrix()).T  # (n, 8, 4)
         x, y, z, w = np.moveaxis(clip, -1, 0)
         outside = ((x < -w).all(1) | (x > w).all(1) | (y < -w).all(1) | (y > w).all(1)
                    | (z < -w).all(1) | (z > w).all(1))
@@ -328,8 +322,8 @@ class DeferredRenderer:
         prog = prog or self.geometry_prog
         set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
         visible = self.visible_objects(camera, t)
-        self._models_at(t)
-        for obj, gm, shown, model in zip(self.scene.objects, self.meshes, visible, self._model_bytes):
+        models = self._objects_at(t).model_bytes
+        for obj, gm, shown, model in zip(self.scene.objects, self.meshes, visible, models):
             if not shown:
                 continue
             mat = gm.material

@@ -125,14 +125,17 @@ def test_objects_outside_the_frustum_are_skipped_without_changing_the_image(cour
 
 
 def test_object_boxes_follow_the_animated_objects_from_time_to_time(courtyard_renderer):
-    """The frustum test's world boxes are kept per time: an animated object's box is moved again for every new t
-    (a frame's passes share one), a static object's never changes."""
+    """The objects' model matrices and the frustum test's world boxes are kept per time: an animated object's are
+    worked out again for every new t (a frame's passes share them), a static object's never change."""
     r = courtyard_renderer
     assert 0 < len(r._animated_objects) < len(r.scene.objects)
     for t in (1.0, 2.5, 2.5, 0.0, 1.0):
         want = np.stack([np.c_[gm.box_corners, np.ones(8)] @ o.model_matrix(t).T
                          for o, gm in zip(r.scene.objects, r.meshes)])
-        np.testing.assert_array_equal(r._boxes_at(t), want)
+        placed = r._objects_at(t)
+        np.testing.assert_array_equal(placed.boxes, want)
+        for o, m in zip(r.scene.objects, placed.models):
+            np.testing.assert_array_equal(m, o.model_matrix(t))
 
 def _world_points(cam, depth):
     h, w = depth.shape
