@@ -47,10 +47,10 @@ from quadcast.render.renderer import CullFn, GBuffer, read_texture
 
 HERE = Path(__file__).resolve().parent
 T = TypeVar("T")
-# An ImBuffer texel no source pixel has written (yoro_scan.comp): (0, SKY_DEPTH of render/camera.glsl, UNSET, -1).
+# An ImBuffer texel no source pixel has written (yoro_scan.comp; client/stereo_common.glsl has the format): (0, -1).
 # The row pass starts from it; the buffer is cleared to it, a fill, where a loop of image stores in the row pass
 # itself (eight rows apart, one per SIMD lane) cost llvmpipe ~7 ms at 960x540.
-UNSET_TEXEL = (0.0, 1e30, -1.0, -1.0)
+UNSET_TEXEL = (0.0, -1.0, 0.0, 0.0)
 ROWS_PER_GROUP = 8   # the row pass's workgroup (yoro_scan.comp): 540 rows make 68 groups for llvmpipe's threads
 
 DrawFn = Callable[[Camera, CullFn], moderngl.Texture]
@@ -147,7 +147,8 @@ class StereoSynthesizer:
         self.fullscreen = ctx.vertex_array(self.mask_prog, [])
         iw, w, h = self.intermediate_width, self.width, self.height
         self.targets = ctx.texture((iw, h), 2, dtype="f4")      # Algorithm 1 output
-        self.imbuffer = ctx.texture((iw, h), 4, dtype="f4")     # Algorithm 2 output
+        self.imbuffer = ctx.texture((iw, h), 2, dtype="f4")     # Algorithm 2 output: covered texels
+        self.records = ctx.texture((iw, h), 4, dtype="f4")      # ... and the disocclusions' records
         self.color = ctx.texture((w, h), 4, dtype="f1")
         self.mask = ctx.texture((w, h), 2, dtype="f1")
         self.merged = ctx.texture((w, h), 4, dtype="f1")        # mode 2 composite
@@ -156,7 +157,7 @@ class StereoSynthesizer:
         self.holes = ctx.buffer(reserve=4 * (1 + w * h))        # the Patcher's hole list: count, then pixels
         self.hole_groups = ctx.buffer(reserve=12)               # its indirect dispatch
         self._cull_fbos: dict[int, moderngl.Framebuffer] = {}   # per depth texture drawn into (mode 2)
-        for tex in (self.targets, self.imbuffer, self.color, self.mask, self.merged):
+        for tex in (self.targets, self.imbuffer, self.records, self.color, self.mask, self.merged):
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self._last: StereoResult | None = None
 
@@ -227,6 +228,7 @@ class StereoSynthesizer:
         set_uniforms(row_cs, **uniforms)
         color.use(0)
         self.imbuffer.bind_to_image(1, read=True, write=True)
+        self.records.bind_to_image(4, read=False, write=True)
         self.color.bind_to_image(2, read=False, write=True)
         self.mask.bind_to_image(3, read=False, write=True)
         self.holes.write(b"\0\0\0\0")
@@ -241,6 +243,7 @@ class StereoSynthesizer:
         """The Patcher's hole pass over the listed disocclusions (an indirect dispatch)."""
         set_uniforms(self.hole_cs, **uniforms)
         self.imbuffer.bind_to_image(0, read=True, write=False)
+        self.records.bind_to_image(4, read=True, write=False)
         self.color.bind_to_image(1, read=False, write=True)
         self.mask.bind_to_image(2, read=False, write=True)
         self.holes.bind_to_storage_buffer(3)
@@ -267,12 +270,14 @@ class StereoSynthesizer:
         self.ctx.memory_barrier()
 
     def scan(self) -> None:
-        """Algorithm 2, `targets` -> `imbuffer` (RGBA32F): per texel (source u - target u, depth, 0, 0) where
-        covered, (left edge x, background depth, width, background-side neighbour x or -1) in a disocclusion."""
+        """Algorithm 2, `targets` -> `imbuffer` (RG32F) and `records` (RGBA32F): per texel (source u - target u,
+        depth) where covered, else (0, -1) and, in `records`, (left edge x, background depth, width,
+        background-side neighbour x or -1) of its disocclusion. `read_imbuffer` shows both as one image."""
         set_uniforms(self.scan_cs, **self.settings)
         self._clear(self._imbuffer_fbo, UNSET_TEXEL)
         self.targets.bind_to_image(0, read=True, write=False)
         self.imbuffer.bind_to_image(1, read=True, write=True)
+        self.records.bind_to_image(4, read=False, write=True)
         self.scan_cs.run(-(-self.height // ROWS_PER_GROUP))
         self.ctx.memory_barrier()
 
@@ -297,8 +302,26 @@ class StereoSynthesizer:
         return self._fill_holes(camera, uniforms)
 
     def read_imbuffer(self) -> np.ndarray:
-        """The ImBuffer as (H, intermediate width, 4) float32, top row first (see `scan`)."""
-        return read_texture(self.imbuffer, 4, "f4")
+        """The ImBuffer as (H, intermediate width, 4) float32, top row first: (source u - target u, depth, 0, 0)
+        where covered, its disocclusion's record elsewhere (see `scan`)."""
+        covered = read_texture(self.imbuffer, 2, "f4")
+        out = read_texture(self.records, 4, "f4")
+        is_covered = covered[..., 1] >= 0
+        out[is_covered] = 0.0
+        out[is_covered, :2] = covered[is_covered]
+        return out
+
+    def write_imbuffer(self, image: np.ndarray) -> None:
+        """Set the ImBuffer from an image in `read_imbuffer`'s layout (a texel is covered where its z is 0), as
+        `patch` reads it."""
+        image = np.asarray(image, np.float32)
+        if image.shape != (self.height, self.intermediate_width, 4):
+            raise ValueError(f"write_imbuffer: expected a ({self.height}, {self.intermediate_width}, 4) image, "
+                             f"got {image.shape}")
+        is_covered = image[..., 2] == 0
+        covered = np.where(is_covered[..., None], image[..., :2], np.float32(UNSET_TEXEL[:2]))
+        self.imbuffer.write(np.ascontiguousarray(covered[::-1], np.float32))
+        self.records.write(np.ascontiguousarray(image[::-1]))
 
     def synthesize_gbuffer(self, gb: GBuffer, edge_mask: bool = True) -> StereoResult:
         """`synthesize` from a rendered G-buffer (its lit colour, view positions and camera)."""
@@ -356,8 +379,8 @@ class StereoSynthesizer:
         return StereoResult(self.merged, result.mask, result.camera)
 
     def release(self) -> None:
-        for obj in (self.fullscreen, self._imbuffer_fbo, self._mask_fbo, self.targets, self.imbuffer, self.color,
-                    self.mask, self.merged, self.holes, self.hole_groups, *self._cull_fbos.values()):
+        for obj in (self.fullscreen, self._imbuffer_fbo, self._mask_fbo, self.targets, self.imbuffer, self.records,
+                    self.color, self.mask, self.merged, self.holes, self.hole_groups, *self._cull_fbos.values()):
             obj.release()
         self._cull_fbos.clear()
 

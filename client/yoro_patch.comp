@@ -19,7 +19,10 @@ layout(local_size_x = 8, local_size_y = 8) in;
 #endif
 layout(std430, binding = 3) buffer Holes { uint hole_count; uint holes[]; };   // (y << 16) | x
 
-layout(rgba32f, binding = 0) readonly uniform image2D u_imbuffer;
+layout(rg32f, binding = 0) readonly uniform image2D u_imbuffer;
+#if HOLES
+layout(rgba32f, binding = 4) readonly uniform image2D u_records;   // the disocclusions' (stereo_common.glsl)
+#endif
 layout(rgba8, binding = 1) writeonly uniform image2D u_out;
 layout(rg8, binding = 2) writeonly uniform image2D u_mask;
 uniform int u_kernel_rows;          // Patcher kernel height h
@@ -41,15 +44,16 @@ void main() {
     int y = p.y;
     float q = (float(p.x) + 0.5) * float(g_w) / float(size.x) - 0.5;  // position in ImBuffer pixels
     int n = clamp(int(round(q)), 0, g_w - 1);
-    vec4 r = imageLoad(u_imbuffer, ivec2(n, y));
 #if !HOLES
-    if (r.z != 0.0) {  // disoccluded: the second pass fills it
+    vec4 r = imageLoad(u_imbuffer, ivec2(n, y));
+    if (!is_covered(r)) {  // disoccluded: the second pass fills it
         holes[atomicAdd(hole_count, 1u)] = (uint(p.y) << 16) | uint(p.x);
         return;
     }
     patch_covered(p, size, q, r);
 #else
     // Disoccluded: r = (left edge, background depth, width, background-side neighbour).
+    vec4 r = imageLoad(u_records, ivec2(n, y));
     imageStore(u_mask, p, vec4(1.0, 0.0, 0.0, 0.0));
     int edge = int(r.w);
     if (edge < 0) { imageStore(u_out, p, vec4(0.0, 0.0, 0.0, 1.0)); return; }
@@ -65,7 +69,7 @@ void main() {
             int yy = y + ((m + 1) / 2) * ((m & 1) == 1 ? -1 : 1);  // rows y, y-1, y+1, y-2, ...
             if (yy < 0 || yy >= size.y) continue;
             vec4 s = imageLoad(u_imbuffer, ivec2(j, yy));
-            if (s.z != 0.0) continue;                                               // another hole
+            if (!is_covered(s)) continue;                                           // another hole
             if (s.y < r.y && !same_surface(s.y, r.y)) continue;                   // foreground: skip
             float weight = remaining * 0.5 + 0.3 * remaining * into;              // eq. 6
             acc += color_at(source_x(j, s), yy) * weight;

@@ -28,7 +28,7 @@ vec3 color_at(float sx, int y) {
 #endif
 }
 
-// Source x (source pixel-centre units) of ImBuffer texel (j, y) holding record r.
+// Source x (source pixel-centre units) of covered ImBuffer texel (j, y), which holds r.
 float source_x(int j, vec4 r) {
     return ((float(j) + 0.5) / float(g_w) + r.x) * float(g_src_size.x) - 0.5;
 }
@@ -55,7 +55,7 @@ void patch_covered(ivec2 p, ivec2 size, float q, vec4 r) {
     int n = clamp(int(round(q)), 0, g_w - 1);
     int i0 = clamp(int(floor(q)), 0, g_w - 1), i1 = min(i0 + 1, g_w - 1);
     vec4 r0 = imageLoad(u_imbuffer, ivec2(i0, y)), r1 = imageLoad(u_imbuffer, ivec2(i1, y));
-    if (r0.z == 0.0 && r1.z == 0.0 && same_surface(r0.y, r1.y)) {
+    if (is_covered(r0) && is_covered(r1) && same_surface(r0.y, r1.y)) {
         float f = clamp(q - float(i0), 0.0, 1.0);
         shift = mix(r0.x, r1.x, f);
         depth = mix(r0.y, r1.y, f);
@@ -63,7 +63,7 @@ void patch_covered(ivec2 p, ivec2 size, float q, vec4 r) {
         vec4 other = (n == i0) ? r1 : r0;
         float sx_n = (u + r.x) * float(g_src_size.x) - 0.5;
         float sx_o = (u + other.x) * float(g_src_size.x) - 0.5;
-        if (other.z == 0.0 && !same_surface(source_depth(ivec2(round(sx_n), y)), r.y)
+        if (is_covered(other) && !same_surface(source_depth(ivec2(round(sx_n), y)), r.y)
                 && same_surface(source_depth(ivec2(round(sx_o), y)), other.y)) {
             shift = other.x;
             depth = other.y;

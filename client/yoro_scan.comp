@@ -3,8 +3,8 @@
 // Sweep 1 turns "where each source pixel lands" into "where each target pixel comes from": every source pixel
 // writes the target pixel nearest to where it lands, and neighbours on one surface also fill the target pixels
 // between them (sub-pixel source positions). Overlaps keep the nearest depth. Sweep 2 finds the target pixels
-// nobody wrote (disocclusions) and records in each its run's left edge, width, and which neighbour is the
-// background (the farther one), for the Patcher.
+// nobody wrote (disocclusions) and records for each, in the records image, its run's left edge, width, and which
+// neighbour is the background (the farther one), for the Patcher.
 //
 // FUSED (a full-resolution ImBuffer): the row pass of all three stages. Sweep 1 computes where each pixel lands
 // itself (Algorithm 1, `landing`) instead of reading it from the targets image, and sweep 2 also patches each
@@ -14,7 +14,8 @@ layout(local_size_x = ROWS_PER_GROUP) in;   // 8 rows a workgroup (client/stereo
                                            // of 540 rows were 17 uneven groups (synthesis ~1 ms slower at 960x540)
 #include "stereo_common.glsl"
 
-layout(rgba32f, binding = 1) uniform image2D u_imbuffer;
+layout(rg32f, binding = 1) uniform image2D u_imbuffer;
+layout(rgba32f, binding = 4) writeonly uniform image2D u_records;   // the disocclusions' (stereo_common.glsl)
 uniform float u_max_stretch;   // widest target gap (ImBuffer pixels) bridged between two neighbours
 #if FUSED
 layout(rgba8, binding = 2) writeonly uniform image2D u_out;
@@ -25,8 +26,6 @@ layout(std430, binding = 3) buffer Holes { uint hole_count; uint holes[]; };   /
 #else
 layout(rg32f, binding = 0) readonly uniform image2D u_targets;
 #endif
-
-const float UNSET = -1.0;
 
 // Where source pixel x of row y lands in the other eye, and its depth there.
 vec2 lands(int x, int y, ivec2 size) {
@@ -40,7 +39,7 @@ vec2 lands(int x, int y, ivec2 size) {
 void put(int t, int y, int w, float src_x, float depth) {
     if (t < 0 || t >= w) return;
     vec4 cur = imageLoad(u_imbuffer, ivec2(t, y));
-    if (cur.z != 0.0 || depth < cur.y)  // empty, or nearer than what is there: nearest wins
+    if (!is_covered(cur) || depth < cur.y)  // empty, or nearer than what is there: nearest wins
         imageStore(u_imbuffer, ivec2(t, y), vec4((src_x - float(t)) / float(w), depth, 0.0, 0.0));
 }
 
@@ -55,7 +54,7 @@ void main() {
     ivec2 size = imageSize(u_imbuffer);
     if (y >= size.y) return;
     int w = size.x;
-    // The row starts unset: (0, SKY_DEPTH, UNSET, -1) everywhere, cleared by the caller (client/stereo.py).
+    // The row starts unset: (0, -1) everywhere, cleared by the caller (client/stereo.py).
 
     // Sweep 1: scatter along the row. A pixel bridged to a neighbour covers the target pixels up to it by
     // interpolation; its own nearest target pixel is written only on a side no bridge covers.
@@ -88,7 +87,7 @@ void main() {
     int t = 0;
     while (t < w) {
         vec4 r = imageLoad(u_imbuffer, ivec2(t, y));
-        if (r.z == 0.0) {
+        if (is_covered(r)) {
 #if FUSED
             patch_covered(ivec2(t, y), size, float(t), r);
 #endif
@@ -96,7 +95,7 @@ void main() {
             continue;
         }
         int a = t;
-        while (t < w && imageLoad(u_imbuffer, ivec2(t, y)).z != 0.0) ++t;
+        while (t < w && !is_covered(imageLoad(u_imbuffer, ivec2(t, y)))) ++t;
         int b = t - 1;
         float dl = a > 0 ? imageLoad(u_imbuffer, ivec2(a - 1, y)).y : -1.0;
         float dr = b < w - 1 ? imageLoad(u_imbuffer, ivec2(b + 1, y)).y : -1.0;
@@ -104,7 +103,7 @@ void main() {
         if (dl >= 0.0 || dr >= 0.0) {
             if (dr >= dl) { edge = float(b + 1); depth = dr; } else { edge = float(a - 1); depth = dl; }
         }
-        for (int k = a; k <= b; ++k) imageStore(u_imbuffer, ivec2(k, y), vec4(float(a), depth, float(b - a + 1), edge));
+        for (int k = a; k <= b; ++k) imageStore(u_records, ivec2(k, y), vec4(float(a), depth, float(b - a + 1), edge));
 #if FUSED
         uint first = atomicAdd(hole_count, uint(b - a + 1));
         for (int k = a; k <= b; ++k) holes[first + uint(k - a)] = (uint(y) << 16) | uint(k);

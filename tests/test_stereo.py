@@ -235,7 +235,10 @@ def test_patcher_fills_from_background_and_skips_foreground(ctx):
     im = np.zeros((3, 16, 4), np.float32)
     im[..., 1] = np.where(fg_cols, 1.0, 4.0)
     im[1, 5:8] = [5, 4, 3, 8]
-    s.imbuffer.write(_gl_rows(im))
+    s.write_imbuffer(im)
+    assert np.array_equal(s.read_imbuffer(), im)              # covered texels and the hole's records, as written
+    with pytest.raises(ValueError, match="write_imbuffer"):
+        s.write_imbuffer(im[:, :8])
     color = np.where(fg_cols[..., None], [255, 0, 0, 255], [0, 0, 255, 255]).astype(np.uint8)
     color[1, 5:8] = [0, 255, 0, 255]  # never to be used
     depth = np.where(fg_cols, 1.0, 4.0).astype("f4")
