@@ -144,7 +144,8 @@ class QuadGenerator:
         # every level's tile list, then the ring around level 0's (the plane pass's extra tiles)
         tw, th = self.tile_grids[0]
         self.tiles = ctx.buffer(reserve=4 * (sum(w * h for w, h in self.tile_grids) + tw * th))
-        self.pixel_planes = ctx.texture((width, height), 4, dtype="f4")   # quad_planes.comp's
+        self.pixel_planes = ctx.texture((width, height), 4, dtype="f4")   # quad_planes.comp's, copied from
+        self.pixel_planes_buffer = ctx.buffer(reserve=width * height * 16)  # ... the buffer it writes
         self.pixel_planes.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.counter = ctx.buffer(reserve=4)
         self.gathered = ctx.buffer(reserve=self.capacity * QUAD_FLOATS * 4)
@@ -252,17 +253,18 @@ class QuadGenerator:
         pixel = dict(u_position=0, u_normal=1, u_mask=2, u_use_mask=mask is not None, u_max_angle=max_angle,
                      u_sky_distance=camera.frustum.far * 0.9 if params.sky else 0.0,
                      u_max_depth=params.max_depth if params.max_depth > 0 else 3.0e38)
-        self.pixel_planes.bind_to_image(0, read=False, write=True)
         self.pixel_planes.use(3)
         if len(tiles[0]):
             # pixel planes on the create pass's tiles and the ring around them: all a create invocation reads
             prog = self.plane_pass
+            self.pixel_planes_buffer.bind_to_storage_buffer(7)
             self._camera_uniforms(prog, camera)
             set_uniforms(prog, **pixel)
             self._run_tiles(prog, bases[0], len(tiles[0]))
             if len(ring):
                 self._run_tiles(prog, bases[-1], len(ring))
             ctx.memory_barrier()
+            self.pixel_planes.write(self.pixel_planes_buffer)
         prog = self.create
         self._camera_uniforms(prog, camera)
         fi = inner.frustum if inner is not None else None
