@@ -12,6 +12,7 @@ from typing import Callable
 
 import moderngl
 import numpy as np
+import trimesh
 
 from quadcast.render.camera import Camera, gl_matrix
 from quadcast.render.gl import gl_context, program, set_uniforms
@@ -146,6 +147,19 @@ class _GpuMesh:
             self.texture = white
         self.uv_mode = 1 if (mat.uv_mode == "triplanar" or mesh.uvs is None) and mat.texture is not None else 0
         self.material = mat
+        self._mesh = mesh
+        self._orientation: int | None = None
+
+    @property
+    def orientation(self) -> int:
+        """+1 if the mesh is closed (watertight once coincident vertices are merged, consistently wound) with its
+        faces wound counter-clockwise seen from outside, -1 if closed and wound the other way, 0 if open: only a
+        closed mesh's back faces can never be seen from outside it. Worked out on first use."""
+        if self._orientation is None:
+            tm = trimesh.Trimesh(self._mesh.positions, self._mesh.indices, process=True)
+            closed = len(tm.faces) > 0 and tm.is_watertight and tm.is_winding_consistent
+            self._orientation = 0 if not closed else (1 if tm.volume > 0 else -1)
+        return self._orientation
 
     def vao_for(self, prog: moderngl.Program) -> moderngl.VertexArray:
         """A vertex array binding this mesh to `prog` (a VAO renders with the program it was made for)."""
@@ -316,16 +330,27 @@ class DeferredRenderer:
                    | (z < -w).all(1) | (z > w).all(1))
         return ~outside
 
-    def draw_geometry(self, camera: Camera, t: float, prog: moderngl.Program | None = None) -> None:
+    def draw_geometry(self, camera: Camera, t: float, prog: moderngl.Program | None = None,
+                      closed_back_faces: bool = True) -> None:
         """Draw every object with `prog` (the G-buffer program unless given) into the bound framebuffer; objects
-        wholly outside the camera's frustum are skipped (`visible_objects`)."""
+        wholly outside the camera's frustum are skipped (`visible_objects`). `closed_back_faces=False` leaves out
+        the back faces of closed meshes (`_GpuMesh.orientation`), which no eye outside them can see."""
         prog = prog or self.geometry_prog
         set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
         visible = self.visible_objects(camera, t)
-        models = self._objects_at(t).model_bytes
-        for obj, gm, shown, model in zip(self.scene.objects, self.meshes, visible, models):
+        placed = self._objects_at(t)
+        for obj, gm, shown, model, matrix in zip(self.scene.objects, self.meshes, visible, placed.model_bytes,
+                                                 placed.models):
             if not shown:
                 continue
+            if not closed_back_faces:
+                # a mirroring model matrix turns the winding over
+                sign = gm.orientation * (1 if np.linalg.det(matrix[:3, :3]) > 0 else -1)
+                if sign:
+                    self.ctx.enable(moderngl.CULL_FACE)
+                    self.ctx.cull_face = "back" if sign > 0 else "front"
+                else:
+                    self.ctx.disable(moderngl.CULL_FACE)
             mat = gm.material
             gm.texture.use(0)
             set_uniforms(prog, u_model=model, u_texture=0,
@@ -334,16 +359,20 @@ class DeferredRenderer:
                          u_shininess=float(max(mat.shininess, 1.0)),
                          u_emissive=tuple(float(c) for c in mat.emissive), u_object_id=obj.object_id)
             gm.vao_for(prog).render(moderngl.TRIANGLES)
+        if not closed_back_faces:
+            self.ctx.disable(moderngl.CULL_FACE)
+            self.ctx.cull_face = "back"
 
     def geometry_pass(self, camera: Camera, t: float, target: GBuffer | None = None,
                       prog: moderngl.Program | None = None, cull: CullFn | None = None,
-                      region: tuple[int, int, int, int] | None = None) -> GBuffer:
+                      region: tuple[int, int, int, int] | None = None,
+                      closed_back_faces: bool = True) -> GBuffer:
         """Fill a G-buffer (the renderer's own for this size unless `target` is given). `prog` may replace the
         G-buffer program with one that includes render/material.glsl (e.g. the server's depth peeling); bind its
         extra textures to units >= 4 before calling. `cull` (see `CullFn`) restricts the pass to the pixels it
         leaves at depth 1; culled pixels stay cleared, which the lighting pass shades as (cheap) sky. `region`
         (x, y, w, h, pixels from the top-left corner) renders only there: the rest of the G-buffer keeps what it
-        held."""
+        held. `closed_back_faces=False`: see `draw_geometry`."""
         gb = target or self.gbuffer_for(camera.width, camera.height)
         gb.geometry_fbo.use()
         if region is None:
@@ -357,7 +386,7 @@ class DeferredRenderer:
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-        self.draw_geometry(camera, t, prog)
+        self.draw_geometry(camera, t, prog, closed_back_faces)
         gb.geometry_fbo.scissor = None
         gb.camera = camera
         return gb

@@ -65,6 +65,9 @@ class LayerRenderer:
         self.visible_max = self.ctx.texture((int(offsets[-1]) + sizes[-1][0], hh), 1, dtype="f4")
         self.visible_max.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.early_reject = True            # False: the peel shader runs its full search on every fragment
+        # the peel passes leave out closed meshes' back faces (DeferredRenderer.draw_geometry), which no eye in the
+        # view cell can see unless it is inside the mesh; False: they peel them like any surface
+        self.skip_closed_back_faces = True
         self.visible_max_levels = 0         # the levels the last `render` built
         self._depth_max = {level0: compute(self.ctx, HERE / "peel_depth_max.comp", LEVEL0=level0)
                            for level0 in (1, 0)}
@@ -155,7 +158,8 @@ class LayerRenderer:
                          u_max_levels=self._depth_levels.tobytes(),
                          u_focal_px=focal_px, u_viewcell_radius=float(viewcell_radius),
                          u_connectivity=float(connectivity), u_max_radius_px=max_radius_px)
-            r.geometry_pass(small, t, target=gb, prog=self.peel, cull=self._cull_where_empty(prev_position))
+            r.geometry_pass(small, t, target=gb, prog=self.peel, cull=self._cull_where_empty(prev_position),
+                            closed_back_faces=not self.skip_closed_back_faces)
             self._depth_step(gb.depth, gb.position, restore=True)
             r.lighting_pass(gb, t, geometry_only=True)    # the atlas needs no sky colour in hidden layers
             layers.append(gb)

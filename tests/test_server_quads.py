@@ -82,6 +82,44 @@ def test_peel_passes_skip_pixels_where_the_previous_layer_is_empty_without_chang
     assert np.isinf(full[2][0]).mean() > 0.3 and np.isfinite(full[2][0]).any()   # a sparse layer: much is culled
 
 
+def test_mesh_orientation_tells_closed_meshes_and_their_winding(ctx):
+    """Closed (watertight, consistently wound) meshes are +1 wound outward and -1 inward; open ones 0."""
+    from quadcast.render.scene import Mesh, SceneObject
+    box = scene_from_dict({"models": [{"primitive": "box"}]}).objects[0].mesh
+    inside_out = Mesh("inside out", box.positions, -box.normals, box.indices[:, ::-1], box.material)
+    plane = scene_from_dict({"models": [{"primitive": "plane", "size": [2, 2]}]}).objects[0].mesh
+    open_box = Mesh("open box", box.positions, box.normals, box.indices[2:], box.material)
+    scene = scene_from_dict({"models": [{"primitive": "box"}]})
+    scene.objects[:] = [SceneObject(m, object_id=i + 1) for i, m in enumerate((box, inside_out, plane, open_box))]
+    renderer = DeferredRenderer(scene, ctx)
+    assert [gm.orientation for gm in renderer.meshes] == [1, -1, 0, 0]
+
+
+def test_peel_passes_leave_out_closed_meshes_back_faces(ctx):
+    """A closed box in front of a wall: behind the box's front face the first hidden layer holds the wall, which
+    an eye moving in the view cell can see past the box's edges, not the box's own back faces (its sides, seen from
+    in front, and its back), which no eye outside it sees; peeling every face (skip_closed_back_faces False) puts
+    them there."""
+    from quadcast.server.layers import LayerRenderer
+    scene = scene_from_dict({"models": [
+        {"primitive": "box", "extents": [1, 1, 1], "position": [0, 0, -3]},
+        {"primitive": "plane", "size": [40, 40], "rotation_deg": [90, 0, 0], "position": [0, 0, -6]}]})
+    renderer = DeferredRenderer(scene, ctx)
+    cam = Camera.perspective(Pose([0, 0, 0]), 96, 54)
+    depths = {}
+    for skip in (True, False):
+        layers = LayerRenderer(renderer, 96, 54, 2)
+        layers.skip_closed_back_faces = skip
+        visible, hidden = layers.render(cam, 0.0, 0.5)
+        depths[skip] = visible.read_depth(), hidden.read_depth()
+    visible_depth = depths[True][0]
+    box = np.abs(visible_depth - 2.5) < 0.01                    # the box's front face, 2.5 m away
+    assert box.sum() > 50 and np.array_equal(visible_depth, depths[False][0])
+    skipped, peeled = depths[True][1][box], depths[False][1][box]
+    assert np.isfinite(skipped).sum() > 10 and np.allclose(skipped[np.isfinite(skipped)], 6.0, rtol=1e-3)
+    assert ((peeled > 2.5) & (peeled <= 3.5 + 1e-3)).sum() > 10   # the box's own (back-facing) sides and back
+
+
 def test_peel_early_reject_keeps_the_layers_of_the_full_search(ctx, courtyard_renderer):
     """The peel shader's early reject (the visible layer's farthest depth over the square its search covers, from
     LayerRenderer.visible_max) drops only fragments the full search would drop: the layers are the same."""
