@@ -10,15 +10,15 @@
 // and, at each disocclusion's texels only, the records image (RGBA32F, the same size):
 //   (left edge x, background depth, width, background-side neighbour x or -1)
 // Two images, not one RGBA32F texel for both: llvmpipe's image loads and stores cost with the channels they move,
-// and every pass but the Patcher's hole pass reads only the first two (the synthesis ~17% faster at 960x540).
+// and every pass but the Patcher's hole pass reads only the first two (the synthesis 12-14% faster at 960x540).
 
 #ifndef QUADCAST_STEREO_COMMON_GLSL
 #define QUADCAST_STEREO_COMMON_GLSL
+#include "camera.glsl"
 
 bool is_covered(vec4 imbuffer_texel) {
     return imbuffer_texel.y >= 0.0;
 }
-#include "camera.glsl"
 
 uniform sampler2D u_depth;
 uniform bool u_depth_is_position;

@@ -186,6 +186,7 @@ class _Placement:
     models: list[np.ndarray]          # model matrices, one per object
     model_bytes: list[bytes]          # the same as uploaded (gl_matrix)
     boxes: np.ndarray                 # (n, 8, 4) world-space bounding-box corners
+    mirrored: list[bool]              # whether a model matrix turns the winding over (negative determinant)
 
 
 class DeferredRenderer:
@@ -312,12 +313,14 @@ class DeferredRenderer:
             models = [o.model_matrix(t) for o in self.scene.objects]
             placed = self._placement = _Placement(
                 t, models, [gl_matrix(m) for m in models],
-                np.stack([np.c_[gm.box_corners, np.ones(8)] @ m.T for m, gm in zip(models, self.meshes)]))
+                np.stack([np.c_[gm.box_corners, np.ones(8)] @ m.T for m, gm in zip(models, self.meshes)]),
+                [bool(np.linalg.det(m[:3, :3]) < 0) for m in models])
         elif self._animated_objects and placed.t != t:
             for i in self._animated_objects:
                 m = placed.models[i] = self.scene.objects[i].model_matrix(t)
                 placed.model_bytes[i] = gl_matrix(m)
                 placed.boxes[i] = np.c_[self.meshes[i].box_corners, np.ones(8)] @ m.T
+                placed.mirrored[i] = bool(np.linalg.det(m[:3, :3]) < 0)
             placed.t = t
         return placed
 
@@ -339,13 +342,12 @@ class DeferredRenderer:
         set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
         visible = self.visible_objects(camera, t)
         placed = self._objects_at(t)
-        for obj, gm, shown, model, matrix in zip(self.scene.objects, self.meshes, visible, placed.model_bytes,
-                                                 placed.models):
+        for obj, gm, shown, model, mirrored in zip(self.scene.objects, self.meshes, visible, placed.model_bytes,
+                                                   placed.mirrored):
             if not shown:
                 continue
             if not closed_back_faces:
-                # a mirroring model matrix turns the winding over
-                sign = gm.orientation * (1 if np.linalg.det(matrix[:3, :3]) > 0 else -1)
+                sign = -gm.orientation if mirrored else gm.orientation
                 if sign:
                     self.ctx.enable(moderngl.CULL_FACE)
                     self.ctx.cull_face = "back" if sign > 0 else "front"
