@@ -154,11 +154,12 @@ class _GpuMesh:
     def orientation(self) -> int:
         """+1 if the mesh is closed (watertight once coincident vertices are merged, consistently wound) with its
         faces wound counter-clockwise seen from outside, -1 if closed and wound the other way, 0 if open: only a
-        closed mesh's back faces can never be seen from outside it. Worked out on first use."""
+        closed mesh's back faces can never be seen from outside it. A mesh of several closed parts is judged part
+        by part (the sign of each one's volume): parts wound different ways -- one of them inside out, or a shell
+        around a cavity -- make it 0, as no one cull direction fits them all. Worked out on first use."""
         if self._orientation is None:
-            tm = trimesh.Trimesh(self._mesh.positions, self._mesh.indices, process=True)
-            closed = len(tm.faces) > 0 and tm.is_watertight and tm.is_winding_consistent
-            self._orientation = 0 if not closed else (1 if tm.volume > 0 else -1)
+            self._orientation = _closed_orientation(
+                trimesh.Trimesh(self._mesh.positions, self._mesh.indices, process=True))
         return self._orientation
 
     def vao_for(self, prog: moderngl.Program) -> moderngl.VertexArray:
@@ -170,6 +171,17 @@ class _GpuMesh:
                                                             (self.uvs, "2f", "in_uv")) if name in prog]
             self._vaos[key] = self.ctx.vertex_array(prog, attrs, self.ibo)
         return self._vaos[key]
+
+
+def _closed_orientation(tm: trimesh.Trimesh) -> int:
+    """`_GpuMesh.orientation` of a merged trimesh: +1 / -1 if it is watertight and consistently wound and every
+    connected part's signed volume has that sign, else 0."""
+    if not (len(tm.faces) and tm.is_watertight and tm.is_winding_consistent):
+        return 0
+    parts = trimesh.graph.connected_component_labels(tm.face_adjacency, node_count=len(tm.faces))
+    a, b, c = (tm.triangles[:, k] for k in range(3))
+    volumes = np.bincount(parts, np.einsum("ij,ij->i", a, np.cross(b, c)))   # 6x each part's signed volume
+    return 1 if (volumes > 0).all() else -1 if (volumes < 0).all() else 0
 
 
 def _gl_rect(region: tuple[int, int, int, int], height: int) -> tuple[int, int, int, int]:

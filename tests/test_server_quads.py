@@ -83,16 +83,24 @@ def test_peel_passes_skip_pixels_where_the_previous_layer_is_empty_without_chang
 
 
 def test_mesh_orientation_tells_closed_meshes_and_their_winding(ctx):
-    """Closed (watertight, consistently wound) meshes are +1 wound outward and -1 inward; open ones 0."""
+    """Closed (watertight, consistently wound) meshes are +1 wound outward and -1 inward; open ones 0, and so are
+    meshes whose closed parts are wound different ways."""
     from quadcast.render.scene import Mesh, SceneObject
     box = scene_from_dict({"models": [{"primitive": "box"}]}).objects[0].mesh
     inside_out = Mesh("inside out", box.positions, -box.normals, box.indices[:, ::-1], box.material)
     plane = scene_from_dict({"models": [{"primitive": "plane", "size": [2, 2]}]}).objects[0].mesh
     open_box = Mesh("open box", box.positions, box.normals, box.indices[2:], box.material)
     scene = scene_from_dict({"models": [{"primitive": "box"}]})
-    scene.objects[:] = [SceneObject(m, object_id=i + 1) for i, m in enumerate((box, inside_out, plane, open_box))]
+    # two boxes apart in one mesh: both wound outward (+1), or the second inside out (0: no one cull direction)
+    moved = box.positions + np.array([3.0, 0.0, 0.0], np.float32)
+    pair = Mesh("pair", np.concatenate([box.positions, moved]), np.concatenate([box.normals, box.normals]),
+                np.concatenate([box.indices, box.indices + len(box.positions)]), box.material)
+    mixed = Mesh("mixed", pair.positions, pair.normals,
+                 np.concatenate([box.indices, box.indices[:, ::-1] + len(box.positions)]), box.material)
+    meshes = (box, inside_out, plane, open_box, pair, mixed)
+    scene.objects[:] = [SceneObject(m, object_id=i + 1) for i, m in enumerate(meshes)]
     renderer = DeferredRenderer(scene, ctx)
-    assert [gm.orientation for gm in renderer.meshes] == [1, -1, 0, 0]
+    assert [gm.orientation for gm in renderer.meshes] == [1, -1, 0, 0, 1, 0]
 
 
 def test_peel_passes_leave_out_closed_meshes_back_faces(ctx):
