@@ -91,6 +91,39 @@ def compute(ctx: moderngl.Context, path: str | Path, **defines) -> moderngl.Comp
     return _compute_cached(ctx, Path(path).resolve(), tuple(sorted(defines.items())))
 
 
+@functools.lru_cache(maxsize=1)
+def _copy_image_sub_data():
+    """GL 4.3's glCopyImageSubData from the EGL loader (None where it cannot be found)."""
+    name = ctypes.util.find_library("EGL")
+    if name is None:
+        return None
+    egl = ctypes.CDLL(name)
+    egl.eglGetProcAddress.restype = ctypes.c_void_p
+    egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+    address = egl.eglGetProcAddress(b"glCopyImageSubData")
+    image = [ctypes.c_uint, ctypes.c_uint, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int]
+    return ctypes.CFUNCTYPE(None, *image, *image, ctypes.c_int, ctypes.c_int, ctypes.c_int)(address) if address \
+        else None
+
+
+def can_copy_textures() -> bool:
+    """Whether `copy_texture` works here."""
+    return _copy_image_sub_data() is not None
+
+
+def copy_texture(ctx: moderngl.Context, src: moderngl.Texture, dst: moderngl.Texture) -> None:
+    """Copy a 2D texture's level 0 into another of the same size and format, depth textures too (glCopyImageSubData:
+    a raw copy; moderngl has no call for it, and its copy_framebuffer leaves depth alone). `ctx` must be current."""
+    if src.size != dst.size or src.dtype != dst.dtype or src.depth != dst.depth or src.components != dst.components:
+        raise ValueError(f"copy_texture: need the same size and format, got {src.size} {src.dtype} and {dst.size} "
+                         f"{dst.dtype}")
+    copy = _copy_image_sub_data()
+    if copy is None:
+        raise GLUnavailableError("copy_texture: glCopyImageSubData is not available from EGL")
+    texture_2d = 0x0DE1
+    copy(src.glo, texture_2d, 0, 0, 0, 0, dst.glo, texture_2d, 0, 0, 0, 0, src.size[0], src.size[1], 1)
+
+
 def read_buffer(buffer: moderngl.Buffer, size: int) -> bytes:
     """The first `size` bytes of a GL buffer. Zero bytes give b"" (moderngl cannot map an empty range)."""
     if size < 0 or size > buffer.size:

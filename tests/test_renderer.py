@@ -186,3 +186,20 @@ def test_shadow_map_follows_animated_casters_only(ctx, animated):
     fresh = DeferredRenderer(scene_from_dict(_shadowed_pair(animated)), ctx).render_color(cam, 1.0)
     assert np.array_equal(later, fresh)
     assert np.array_equal(first, later) != animated
+
+
+def test_static_casters_depth_is_kept_and_copied_where_casters_move(ctx):
+    """With animated casters the static ones' depth is drawn once and copied into the shadow map before the moving
+    ones are drawn: at every time the same shadow map and picture as drawing every caster again."""
+    scene = scene_from_dict(_shadowed_pair(True))
+    cam = Camera.perspective(Pose.look_at([0, 4, 2], [0, 0, -4]), 160, 90)
+    cached = DeferredRenderer(scene, ctx)
+    drawn = DeferredRenderer(scene_from_dict(_shadowed_pair(True)), ctx, static_shadow_cache=False)
+    assert cached._static_shadow is not None and drawn._static_shadow is None
+    images = []
+    for t in (0.0, 1.0, 2.5, 1.0):
+        a, b = cached.render_color(cam, t), drawn.render_color(cam, t)
+        assert cached.shadow_map.read() == drawn.shadow_map.read()
+        assert np.array_equal(a, b)
+        images.append(a)
+    assert not np.array_equal(images[0], images[1])      # the box's shadow moved
