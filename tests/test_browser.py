@@ -83,17 +83,28 @@ def test_page_and_python_client_draw_the_same_frame_alike(server, browser):
     walk = resolve_trace("builtin:walk")
     position, quat = walk.pose_at(walk.times[0] + 3.0)
     pose = ",".join(f"{v:.9g}" for v in (*position, *quat))
-    page, problems = open_page(browser, page_url(server.port, SIZE, None, token=TOKEN, pose=pose, freeze=8, keep=1))
-    try:
-        page.wait_for_function("window.quadcast && window.quadcast.stats.framesApplied >= 8", timeout=90_000)
-        shot = page.evaluate("window.quadcast.capture()")
-        kept = [base64.b64decode(f) for f in page.evaluate("window.quadcast.appliedFrames()")]
-    finally:
-        page.close()
-    assert not problems, problems
-    payloads = [decode_frame_payload(k) for k in kept]
-    assert payloads[0].frame_type == FrameType.REFERENCE and payloads[-1].frame_id == shot["frameId"]
-    assert any(p.frame_type == FrameType.RESIDUAL for p in payloads), [p.frame_type for p in payloads]
+    attempts = []
+    for _ in range(3):
+        page, problems = open_page(browser, page_url(server.port, SIZE, None, token=TOKEN, pose=pose, freeze=8,
+                                                     keep=1))
+        try:
+            page.wait_for_function("window.quadcast && window.quadcast.stats.framesApplied >= 8", timeout=90_000)
+            shot = page.evaluate("window.quadcast.capture()")
+            kept = [base64.b64decode(f) for f in page.evaluate("window.quadcast.appliedFrames()")]
+            stats = page.evaluate(STATS)
+        finally:
+            page.close()
+        assert not problems, problems
+        payloads = [decode_frame_payload(k) for k in kept]
+        assert payloads[0].frame_type == FrameType.REFERENCE and payloads[-1].frame_id == shot["frameId"]
+        if any(p.frame_type == FrameType.RESIDUAL for p in payloads):
+            break
+        # A page that fell behind on a loaded machine (frames dropped unprocessed, so a reference asked for) can
+        # end its 8 frames on a reference: nothing to compare residual frames with. Try again.
+        attempts.append({"frames": [(p.frame_id, p.frame_type.name) for p in payloads],
+                         **{k: stats.get(k) for k in ("referenceRequests", "framesRejected", "framesReceived")}})
+    else:
+        pytest.fail(f"the page's last 8 frames held no residual frame in 3 tries: {attempts}")
     w, h = SIZE
     page_image = np.frombuffer(base64.b64decode(shot["rgba"]), np.uint8).reshape(h, w, 4)[..., :3]
     client = QuasarClient(w, h, 60.0)
