@@ -113,7 +113,8 @@ def can_copy_textures() -> bool:
 
 def copy_texture(ctx: moderngl.Context, src: moderngl.Texture, dst: moderngl.Texture) -> None:
     """Copy a 2D texture's level 0 into another of the same size and format, depth textures too (glCopyImageSubData:
-    a raw copy; moderngl has no call for it, and its copy_framebuffer leaves depth alone). `ctx` must be current."""
+    a raw copy; moderngl has no call for it, and its copy_framebuffer leaves depth alone). `ctx` must be current: an
+    EGL context, as `create_context` makes (the call is looked up through EGL)."""
     if src.size != dst.size or src.dtype != dst.dtype or src.depth != dst.depth or src.components != dst.components:
         raise ValueError(f"copy_texture: need the same size and format, got {src.size} {src.dtype} and {dst.size} "
                          f"{dst.dtype}")

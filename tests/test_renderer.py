@@ -203,3 +203,19 @@ def test_static_casters_depth_is_kept_and_copied_where_casters_move(ctx):
         assert np.array_equal(a, b)
         images.append(a)
     assert not np.array_equal(images[0], images[1])      # the box's shadow moved
+
+
+def test_copy_texture_copies_depth_and_refuses_other_formats(ctx):
+    """`copy_texture` copies a depth texture's values as they are, and names the mismatch when sizes or formats
+    differ."""
+    from quadcast.render.gl import copy_texture
+    src, dst = ctx.depth_texture((8, 4)), ctx.depth_texture((8, 4))
+    fbo = ctx.framebuffer(depth_attachment=src)
+    fbo.use()
+    fbo.clear(depth=0.25)
+    copy_texture(ctx, src, dst)
+    assert np.allclose(np.frombuffer(dst.read(), np.float32), 0.25, atol=1e-6)
+    with pytest.raises(ValueError, match="same size and format"):
+        copy_texture(ctx, src, ctx.depth_texture((4, 4)))
+    with pytest.raises(ValueError, match="same size and format"):
+        copy_texture(ctx, src, ctx.texture((8, 4), 1, dtype="f4"))
