@@ -132,11 +132,15 @@ class StereoSynthesizer:
         self.reproject_cs = compute(ctx, HERE / "yoro_reproject.comp")
         self.scan_cs = compute(ctx, HERE / "yoro_scan.comp", FUSED=0, ROWS_PER_GROUP=ROWS_PER_GROUP)
         fixed = dict(LINEAR=int(bool(linear)), COARSE=int(self.intermediate_width < self.width))
-        # a full-resolution ImBuffer: the three stages' row pass in one dispatch, with and without the edge reject
+        # a full-resolution ImBuffer: the three stages' row pass in one dispatch, with and without the edge reject,
+        # and its hole pass, which finds the disocclusions' runs
         self.row_cs = None if fixed["COARSE"] else {
             edges: compute(ctx, HERE / "yoro_scan.comp", FUSED=1, EDGES=int(edges), LINEAR=fixed["LINEAR"],
-                           ROWS_PER_GROUP=ROWS_PER_GROUP)
+                           ROWS_PER_GROUP=ROWS_PER_GROUP, ROW_WORDS=-(-self.width // 32))
             for edges in (True, False)}
+        self.fused_hole_cs = None if fixed["COARSE"] else compute(ctx, HERE / "yoro_patch.comp", HOLES=1, EDGES=0,
+                                                                  FIND_RUNS=1, ROW_WORDS=-(-self.width // 32),
+                                                                  **fixed)
         # covered pixels (and lists the holes), with and without the edge reject; the listed holes
         self.patch_cs = {edges: compute(ctx, HERE / "yoro_patch.comp", HOLES=0, EDGES=int(edges), **fixed)
                          for edges in (True, False)}
@@ -156,6 +160,8 @@ class StereoSynthesizer:
         self._mask_fbo = ctx.framebuffer([self.mask])            # cleared to 0: the patch writes only its 1s
         self.holes = ctx.buffer(reserve=4 * (1 + w * h))        # the Patcher's hole list: count, then pixels
         self.hole_groups = ctx.buffer(reserve=12)               # its indirect dispatch
+        # the fused row pass's same-surface bits per source pixel, which its hole pass reads (yoro_scan.comp)
+        self.same_bits = ctx.buffer(reserve=4 * -(-w // 32) * h)
         self._cull_fbos: dict[int, moderngl.Framebuffer] = {}   # per depth texture drawn into (mode 2)
         for tex in (self.targets, self.imbuffer, self.records, self.color, self.mask, self.merged):
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -228,29 +234,33 @@ class StereoSynthesizer:
         set_uniforms(row_cs, **uniforms)
         color.use(0)
         self.imbuffer.bind_to_image(1, read=True, write=True)
-        self.records.bind_to_image(4, read=False, write=True)
         self.color.bind_to_image(2, read=False, write=True)
         self.mask.bind_to_image(3, read=False, write=True)
         self.holes.write(b"\0\0\0\0")
         self.holes.bind_to_storage_buffer(3)
+        self.same_bits.bind_to_storage_buffer(5)
         self._clear(self._imbuffer_fbo, UNSET_TEXEL)
         self._clear(self._mask_fbo, (0.0, 0.0, 0.0, 0.0))
         row_cs.run(-(-self.height // ROWS_PER_GROUP))
         self.ctx.memory_barrier()
-        return self._fill_holes(camera, uniforms)
+        return self._fill_holes(camera, uniforms, fused=True)
 
-    def _fill_holes(self, camera: Camera, uniforms: dict) -> StereoResult:
-        """The Patcher's hole pass over the listed disocclusions (an indirect dispatch)."""
-        set_uniforms(self.hole_cs, **uniforms)
+    def _fill_holes(self, camera: Camera, uniforms: dict, fused: bool = False) -> StereoResult:
+        """The Patcher's hole pass over the listed disocclusions (an indirect dispatch); `fused`: after the fused
+        row pass, which lists them without their records (the pass finds and writes them)."""
+        hole_cs = self.fused_hole_cs if fused else self.hole_cs
+        set_uniforms(hole_cs, **uniforms)
         self.imbuffer.bind_to_image(0, read=True, write=False)
-        self.records.bind_to_image(4, read=True, write=False)
+        self.records.bind_to_image(4, read=not fused, write=fused)
         self.color.bind_to_image(1, read=False, write=True)
         self.mask.bind_to_image(2, read=False, write=True)
         self.holes.bind_to_storage_buffer(3)
         self.hole_groups.bind_to_storage_buffer(4)
+        if fused:
+            self.same_bits.bind_to_storage_buffer(5)
         self.hole_groups_cs.run(1)
         self.ctx.memory_barrier()
-        self.hole_cs.run_indirect(self.hole_groups)
+        hole_cs.run_indirect(self.hole_groups)
         self.ctx.memory_barrier()
         self._last = StereoResult(self.color, self.mask, self.other_eye(camera))
         return self._last
@@ -380,7 +390,8 @@ class StereoSynthesizer:
 
     def release(self) -> None:
         for obj in (self.fullscreen, self._imbuffer_fbo, self._mask_fbo, self.targets, self.imbuffer, self.records,
-                    self.color, self.mask, self.merged, self.holes, self.hole_groups, *self._cull_fbos.values()):
+                    self.color, self.mask, self.merged, self.holes, self.hole_groups, self.same_bits,
+                    *self._cull_fbos.values()):
             obj.release()
         self._cull_fbos.clear()
 

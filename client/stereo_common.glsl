@@ -39,11 +39,12 @@ bool same_surface(float a, float b) {
 
 // YORO Algorithm 1 for ImBuffer pixel i of an ImBuffer `size` across: lift the dominant eye's depth sample at the
 // pixel's uv to a view-space point and move it with one matrix into the other eye's clip space. Returns (x where
-// it lands, in ImBuffer pixel-centre units, -1e9 behind the other eye; its depth there, SKY_DEPTH for sky).
+// it lands, in ImBuffer pixel-centre units, -1e9 behind the other eye; its depth there, SKY_DEPTH for sky);
+// `landing_z` also returns the source depth it read.
 uniform mat4 u_reproject;   // dominant eye view space -> other eye clip space (M of YORO eq. 5)
 uniform vec4 u_extents;     // dominant eye's frustum l, r, b, t at distance 1
 
-vec2 landing(ivec2 i, ivec2 size) {
+vec3 landing_z(ivec2 i, ivec2 size) {
     vec2 uv = (vec2(i) + 0.5) / vec2(size);
     ivec2 src = ivec2(uv * vec2(textureSize(u_depth, 0)));
     float z = source_depth(src);
@@ -52,7 +53,19 @@ vec2 landing(ivec2 i, ivec2 size) {
     vec4 c = u_reproject * p;
     float x = -1e9;  // behind the other eye: lands nowhere
     if (c.w > 0.0) x = (c.x / c.w * 0.5 + 0.5) * float(size.x) - 0.5;
-    return vec2(x, z < SKY_DEPTH ? c.w : SKY_DEPTH);
+    return vec3(x, z < SKY_DEPTH ? c.w : SKY_DEPTH, z);
+}
+
+vec2 landing(ivec2 i, ivec2 size) {
+    return landing_z(i, size).xy;
+}
+
+// The record of the disocclusion at ImBuffer texels a..b of a row, whose neighbours' depths are dl (texel a - 1)
+// and dr (texel b + 1), -1 where the row ends: its background is the farther neighbour.
+vec4 disocclusion_record(int a, int b, float dl, float dr) {
+    vec4 record = vec4(float(a), SKY_DEPTH, float(b - a + 1), -1.0);
+    if (dl >= 0.0 || dr >= 0.0) record.yw = dr >= dl ? vec2(dr, float(b + 1)) : vec2(dl, float(a - 1));
+    return record;
 }
 
 #endif

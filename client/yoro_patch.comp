@@ -6,12 +6,13 @@
 // foreground samples, and weighs each sample with eq. 6, W = w/2 + 0.3 w (distance into the hole / width).
 // The mask gets r = disoccluded, g = conservative edge reject (stereo shading reprojection's triangle filter:
 // a covered pixel whose source lies within u_edge_radius of something nearer is not trusted).
-// Built twice: HOLES 0 runs on every pixel, patches the covered ones and lists the disoccluded ones; HOLES 1 runs
-// on that list only (an indirect dispatch). The covered pixels' part is yoro_patch.glsl, which the fused row pass
-// (yoro_scan.comp, FUSED) runs too. In one pass llvmpipe would run the hole kernel's loops for every
-// covered pixel too (it executes both sides of a branch for all 8 lanes) -- for the same reason the synthesizer's
-// fixed settings are compile-time: LINEAR (interpolate source colours along x), COARSE (the ImBuffer is
-// narrower than the eye) and EDGES (compute the conservative edge reject; YORO alone, mode 1, has no use for it).
+// Built three times: HOLES 0 runs on every pixel, patches the covered ones and lists the disoccluded ones; HOLES 1
+// runs on that list only (an indirect dispatch), with FIND_RUNS after the fused row pass (yoro_scan.comp), whose
+// list comes without the disocclusions' records. The covered pixels' part is yoro_patch.glsl, which the fused
+// row pass runs too. In one pass llvmpipe would run the hole kernel's loops for every covered pixel too (it
+// executes both sides of a branch for all 8 lanes) -- for the same reason the synthesizer's fixed settings are
+// compile-time: LINEAR (interpolate source colours along x), COARSE (the ImBuffer is narrower than the eye) and
+// EDGES (compute the conservative edge reject; YORO alone, mode 1, has no use for it).
 #if HOLES
 layout(local_size_x = 64) in;
 #else
@@ -20,14 +21,28 @@ layout(local_size_x = 8, local_size_y = 8) in;
 layout(std430, binding = 3) buffer Holes { uint hole_count; uint holes[]; };   // (y << 16) | x
 
 layout(rg32f, binding = 0) readonly uniform image2D u_imbuffer;
-#if HOLES
-layout(rgba32f, binding = 4) readonly uniform image2D u_records;   // the disocclusions' (stereo_common.glsl)
+#ifndef FIND_RUNS
+#define FIND_RUNS 0
+#endif
+#if HOLES && FIND_RUNS
+layout(rgba32f, binding = 4) writeonly uniform image2D u_records;  // the disocclusions' (stereo_common.glsl)
+#elif HOLES
+layout(rgba32f, binding = 4) readonly uniform image2D u_records;
 #endif
 layout(rgba8, binding = 1) writeonly uniform image2D u_out;
 layout(rg8, binding = 2) writeonly uniform image2D u_mask;
 uniform int u_kernel_rows;          // Patcher kernel height h
 uniform int u_kernel_max;           // Patcher kernel width cap (ImBuffer pixels)
+#if FIND_RUNS
+#define SAME_BITS LINEAR
+layout(std430, binding = 5) readonly buffer SameBits { uint same_bits[]; };   // the row pass's (yoro_scan.comp)
+#endif
 #include "yoro_patch.glsl"
+#if SAME_BITS
+bool same_neighbours(int x, int y) {
+    return ((same_bits[y * ROW_WORDS + (x >> 5)] >> uint(x & 31)) & 1u) != 0u;
+}
+#endif
 
 void main() {
     ivec2 size = imageSize(u_out);
@@ -53,7 +68,18 @@ void main() {
     patch_covered(p, size, q, r);
 #else
     // Disoccluded: r = (left edge, background depth, width, background-side neighbour).
+#if FIND_RUNS
+    // The fused row pass listed the hole alone (a full-resolution ImBuffer, n = p.x): find its run, and record it
+    // as the staged row sweep does (yoro_scan.comp).
+    int a = n, b = n;
+    while (a > 0 && !is_covered(imageLoad(u_imbuffer, ivec2(a - 1, y)))) --a;
+    while (b < g_w - 1 && !is_covered(imageLoad(u_imbuffer, ivec2(b + 1, y)))) ++b;
+    vec4 r = disocclusion_record(a, b, a > 0 ? imageLoad(u_imbuffer, ivec2(a - 1, y)).y : -1.0,
+                                 b < g_w - 1 ? imageLoad(u_imbuffer, ivec2(b + 1, y)).y : -1.0);
+    imageStore(u_records, ivec2(n, y), r);
+#else
     vec4 r = imageLoad(u_records, ivec2(n, y));
+#endif
     imageStore(u_mask, p, vec4(1.0, 0.0, 0.0, 0.0));
     int edge = int(r.w);
     if (edge < 0) { imageStore(u_out, p, vec4(0.0, 0.0, 0.0, 1.0)); return; }

@@ -3,8 +3,16 @@
 // (linearly interpolated along x between neighbours on one surface), and the mask (r = 0: not disoccluded; g = the
 // conservative edge reject of stereo shading reprojection's triangle filter when EDGES: a covered pixel whose
 // source lies within u_edge_radius of something nearer is not trusted). The includer declares the images
-// u_imbuffer, u_out (rgba8) and u_mask (rg8) and the defines LINEAR, COARSE and EDGES (see yoro_patch.comp).
+// u_imbuffer, u_out (rgba8) and u_mask (rg8) and the defines LINEAR, COARSE and EDGES (see yoro_patch.comp);
+// with SAME_BITS the includer defines `same_neighbours(x, y)`, whether source pixels x and x + 1 of row y are on
+// one surface, from the bits the fused row pass keeps (yoro_scan.comp), instead of fetching both depths.
 #include "stereo_common.glsl"
+#ifndef SAME_BITS
+#define SAME_BITS 0
+#endif
+#if SAME_BITS
+bool same_neighbours(int x, int y);
+#endif
 
 uniform sampler2D u_color;          // dominant eye, lit sRGB (GL rows, bottom first)
 uniform float u_edge_radius;        // conservative filter: triangle vertex distance (pixels); 0 = off
@@ -23,7 +31,11 @@ vec3 color_at(float sx, int y) {
     ivec2 a = ivec2(clamp(int(x0), 0, g_src_size.x - 1), y);
     ivec2 b = ivec2(clamp(int(x0) + 1, 0, g_src_size.x - 1), y);
     vec3 ca = texelFetch(u_color, a, 0).rgb, cb = texelFetch(u_color, b, 0).rgb;
+#if SAME_BITS   // a == b at the row's ends
+    if (a.x == b.x || same_neighbours(a.x, y)) return mix(ca, cb, f);
+#else
     if (same_surface(source_depth(a), source_depth(b))) return mix(ca, cb, f);
+#endif
     return f < 0.5 ? ca : cb;
 #endif
 }

@@ -7,32 +7,44 @@
 // neighbour is the background (the farther one), for the Patcher.
 //
 // FUSED (a full-resolution ImBuffer): the row pass of all three stages. Sweep 1 computes where each pixel lands
-// itself (Algorithm 1, `landing`) instead of reading it from the targets image, and sweep 2 also patches each
-// covered pixel (Algorithm 3, `patch_covered`) and lists each disocclusion's pixels for the Patcher's hole pass --
-// three fewer full-screen passes, each of which costs llvmpipe milliseconds at 960x540 whatever it does.
+// itself (Algorithm 1, `landing_z`) instead of reading it from the targets image, and sweep 2 patches each
+// covered pixel (Algorithm 3, `patch_covered`) and lists the disoccluded ones for the Patcher's hole pass, which
+// finds each one's run and records it (yoro_patch.comp, FIND_RUNS) -- three fewer full-screen passes, each of
+// which costs llvmpipe milliseconds at 960x540 whatever it does. The row loop has no run-finding branches
+// (llvmpipe runs every branch of a loop's body for all 8 lanes each turn), and sweep 1 keeps, as bits, which
+// neighbouring source pixels the Patcher's colour interpolation may blend (the depths it reads anyway), so
+// sweep 2 fetches no depth (the same images in less time: docs/speed.md, stop 37).
 layout(local_size_x = ROWS_PER_GROUP) in;   // 8 rows a workgroup (client/stereo.py): with 32, the two cores' shares
                                            // of 540 rows were 17 uneven groups (synthesis ~1 ms slower at 960x540)
 #include "stereo_common.glsl"
 
 layout(rg32f, binding = 1) uniform image2D u_imbuffer;
-layout(rgba32f, binding = 4) writeonly uniform image2D u_records;   // the disocclusions' (stereo_common.glsl)
 uniform float u_max_stretch;   // widest target gap (ImBuffer pixels) bridged between two neighbours
 #if FUSED
 layout(rgba8, binding = 2) writeonly uniform image2D u_out;
 layout(rg8, binding = 3) writeonly uniform image2D u_mask;
 layout(std430, binding = 3) buffer Holes { uint hole_count; uint holes[]; };   // (y << 16) | x
 #define COARSE 0
+#define SAME_BITS LINEAR
+// Bit x % 32 of word y * ROW_WORDS + x / 32: source pixels x and x + 1 of row y are on one surface (`same_surface`
+// of their depths, the test the Patcher's colour interpolation makes); ROW_WORDS = ceil(width / 32)
+// (client/stereo.py). Sweep 1 writes its row's, sweep 2 and the hole pass (yoro_patch.comp, FIND_RUNS) read them.
+layout(std430, binding = 5) buffer SameBits { uint same_bits[]; };
 #include "yoro_patch.glsl"
+bool same_neighbours(int x, int y) {
+    return ((same_bits[y * ROW_WORDS + (x >> 5)] >> uint(x & 31)) & 1u) != 0u;
+}
 #else
 layout(rg32f, binding = 0) readonly uniform image2D u_targets;
+layout(rgba32f, binding = 4) writeonly uniform image2D u_records;   // the disocclusions' (stereo_common.glsl)
 #endif
 
-// Where source pixel x of row y lands in the other eye, and its depth there.
-vec2 lands(int x, int y, ivec2 size) {
+// Where source pixel x of row y lands in the other eye, its depth there, and (FUSED) its source depth.
+vec3 lands(int x, int y, ivec2 size) {
 #if FUSED
-    return landing(ivec2(x, y), size);
+    return landing_z(ivec2(x, y), size);
 #else
-    return imageLoad(u_targets, ivec2(x, y)).xy;
+    return vec3(imageLoad(u_targets, ivec2(x, y)).xy, 0.0);
 #endif
 }
 
@@ -44,7 +56,7 @@ void put(int t, int y, int w, float src_x, float depth) {
 }
 
 // Two neighbouring source pixels on one surface whose landing spots are in order and close enough.
-bool bridges(vec2 a, vec2 b) {
+bool bridges(vec3 a, vec3 b) {
     float gap = b.x - a.x;
     return gap > 0.0 && gap <= u_max_stretch && same_surface(a.y, b.y);
 }
@@ -58,11 +70,21 @@ void main() {
 
     // Sweep 1: scatter along the row. A pixel bridged to a neighbour covers the target pixels up to it by
     // interpolation; its own nearest target pixel is written only on a side no bridge covers.
-    vec2 right = vec2(0.0);
-    vec2 c = lands(w - 1, y, size);
+    vec3 right = vec3(0.0);
+    vec3 c = lands(w - 1, y, size);
     bool bridged_right = false;
+#if FUSED
+    uint bits = 0u;
+#endif
     for (int x = w - 1; x >= 0; --x) {
-        vec2 left = x > 0 ? lands(x - 1, y, size) : c;
+        vec3 left = x > 0 ? lands(x - 1, y, size) : c;
+#if FUSED
+        if (x < w - 1 && same_surface(c.z, right.z)) bits |= 1u << uint(x & 31);
+        if ((x & 31) == 0) {   // a word is done (x is the same in all lanes)
+            same_bits[y * ROW_WORDS + (x >> 5)] = bits;
+            bits = 0u;
+        }
+#endif
         bool bridged_left = x > 0 && bridges(left, c);
         bridged_right = x < w - 1 && bridges(c, right);
         if (bridged_right) {
@@ -79,18 +101,20 @@ void main() {
         c = left;
     }
 
-    // Sweep 2: record each disocclusion run (FUSED: and patch each covered pixel, list the holes).
 #if FUSED
+    // Sweep 2: patch each covered pixel, list the disoccluded ones.
     g_src_size = textureSize(u_color, 0);
     g_w = w;
-#endif
+    for (int t = 0; t < w; ++t) {
+        vec4 r = imageLoad(u_imbuffer, ivec2(t, y));
+        if (is_covered(r)) patch_covered(ivec2(t, y), size, float(t), r);
+        else holes[atomicAdd(hole_count, 1u)] = (uint(y) << 16) | uint(t);
+    }
+#else
+    // Sweep 2: record each disocclusion run.
     int t = 0;
     while (t < w) {
-        vec4 r = imageLoad(u_imbuffer, ivec2(t, y));
-        if (is_covered(r)) {
-#if FUSED
-            patch_covered(ivec2(t, y), size, float(t), r);
-#endif
+        if (is_covered(imageLoad(u_imbuffer, ivec2(t, y)))) {
             ++t;
             continue;
         }
@@ -99,14 +123,8 @@ void main() {
         int b = t - 1;
         float dl = a > 0 ? imageLoad(u_imbuffer, ivec2(a - 1, y)).y : -1.0;
         float dr = b < w - 1 ? imageLoad(u_imbuffer, ivec2(b + 1, y)).y : -1.0;
-        float edge = -1.0, depth = SKY_DEPTH;
-        if (dl >= 0.0 || dr >= 0.0) {
-            if (dr >= dl) { edge = float(b + 1); depth = dr; } else { edge = float(a - 1); depth = dl; }
-        }
-        for (int k = a; k <= b; ++k) imageStore(u_records, ivec2(k, y), vec4(float(a), depth, float(b - a + 1), edge));
-#if FUSED
-        uint first = atomicAdd(hole_count, uint(b - a + 1));
-        for (int k = a; k <= b; ++k) holes[first + uint(k - a)] = (uint(y) << 16) | uint(k);
-#endif
+        vec4 record = disocclusion_record(a, b, dl, dr);
+        for (int k = a; k <= b; ++k) imageStore(u_records, ivec2(k, y), record);
     }
+#endif
 }

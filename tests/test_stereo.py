@@ -320,16 +320,19 @@ def test_courtyard_quality_and_mode2_no_worse(courtyard_renderer):
     assert bench.synthesize_ms > 0 and bench.render_ms > 0 and bench.rerender_ms > 0
 
 
-def test_fused_row_pass_makes_what_the_three_stages_make(ctx, courtyard_renderer):
-    """A full-resolution ImBuffer runs the fused row pass (Algorithms 1-3 in one row sweep, then the hole pass):
-    colour, masks and ImBuffer equal to running `reproject`, `scan` and `patch` one after another, with and without
-    the edge reject, on courtyard views with disocclusions and sky."""
+@pytest.mark.parametrize("width", [W, W - 13])
+def test_fused_row_pass_makes_what_the_three_stages_make(ctx, courtyard_renderer, width):
+    """A full-resolution ImBuffer runs the fused row pass (Algorithms 1-3 in one row sweep, then the hole pass,
+    which finds the disocclusions' runs; the colour interpolation's same-surface test from the row pass's bits):
+    colour, masks and ImBuffer (with the disocclusions' records) equal to running `reproject`, `scan` and `patch`
+    one after another, with and without the edge reject, on courtyard views with disocclusions and sky; also at a
+    width that is not a multiple of the bits' 32-pixel words."""
     from quadcast.render.traces import resolve_trace
     trace = resolve_trace("builtin:walk")
-    s = StereoSynthesizer(ctx, W, H, ipd=0.063)
-    assert s.row_cs is not None and StereoSynthesizer(ctx, W, H, intermediate_scale=0.5).row_cs is None
+    s = StereoSynthesizer(ctx, width, H, ipd=0.063)
+    assert s.row_cs is not None and StereoSynthesizer(ctx, width, H, intermediate_scale=0.5).row_cs is None
     for t in (2.0, 10.0):
-        camera = Camera.perspective(Pose(*trace.pose_at(t)), W, H)
+        camera = Camera.perspective(Pose(*trace.pose_at(t)), width, H)
         gb = courtyard_renderer.gbuffer(camera, t)
         for edges in (False, True):
             fused = s.synthesize_gbuffer(gb, edge_mask=edges)
