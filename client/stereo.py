@@ -132,15 +132,15 @@ class StereoSynthesizer:
         self.reproject_cs = compute(ctx, HERE / "yoro_reproject.comp")
         self.scan_cs = compute(ctx, HERE / "yoro_scan.comp", FUSED=0, ROWS_PER_GROUP=ROWS_PER_GROUP)
         fixed = dict(LINEAR=int(bool(linear)), COARSE=int(self.intermediate_width < self.width))
+        row_words = -(-self.width // 32)   # the fused row pass's same-surface bits: 32-pixel words per row
         # a full-resolution ImBuffer: the three stages' row pass in one dispatch, with and without the edge reject,
         # and its hole pass, which finds the disocclusions' runs
         self.row_cs = None if fixed["COARSE"] else {
             edges: compute(ctx, HERE / "yoro_scan.comp", FUSED=1, EDGES=int(edges), LINEAR=fixed["LINEAR"],
-                           ROWS_PER_GROUP=ROWS_PER_GROUP, ROW_WORDS=-(-self.width // 32))
+                           ROWS_PER_GROUP=ROWS_PER_GROUP, ROW_WORDS=row_words)
             for edges in (True, False)}
         self.fused_hole_cs = None if fixed["COARSE"] else compute(ctx, HERE / "yoro_patch.comp", HOLES=1, EDGES=0,
-                                                                  FIND_RUNS=1, ROW_WORDS=-(-self.width // 32),
-                                                                  **fixed)
+                                                                  FIND_RUNS=1, ROW_WORDS=row_words, **fixed)
         # covered pixels (and lists the holes), with and without the edge reject; the listed holes
         self.patch_cs = {edges: compute(ctx, HERE / "yoro_patch.comp", HOLES=0, EDGES=int(edges), **fixed)
                          for edges in (True, False)}
@@ -161,7 +161,7 @@ class StereoSynthesizer:
         self.holes = ctx.buffer(reserve=4 * (1 + w * h))        # the Patcher's hole list: count, then pixels
         self.hole_groups = ctx.buffer(reserve=12)               # its indirect dispatch
         # the fused row pass's same-surface bits per source pixel, which its hole pass reads (yoro_scan.comp)
-        self.same_bits = ctx.buffer(reserve=4 * -(-w // 32) * h)
+        self.same_bits = ctx.buffer(reserve=4 * row_words * h)
         self._cull_fbos: dict[int, moderngl.Framebuffer] = {}   # per depth texture drawn into (mode 2)
         for tex in (self.targets, self.imbuffer, self.records, self.color, self.mask, self.merged):
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)

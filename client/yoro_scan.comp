@@ -74,16 +74,20 @@ void main() {
     vec3 c = lands(w - 1, y, size);
     bool bridged_right = false;
 #if FUSED
+#if SAME_BITS
     uint bits = 0u;
+#endif
 #endif
     for (int x = w - 1; x >= 0; --x) {
         vec3 left = x > 0 ? lands(x - 1, y, size) : c;
 #if FUSED
+#if SAME_BITS
         if (x < w - 1 && same_surface(c.z, right.z)) bits |= 1u << uint(x & 31);
         if ((x & 31) == 0) {   // a word is done (x is the same in all lanes)
             same_bits[y * ROW_WORDS + (x >> 5)] = bits;
             bits = 0u;
         }
+#endif
 #endif
         bool bridged_left = x > 0 && bridges(left, c);
         bridged_right = x < w - 1 && bridges(c, right);

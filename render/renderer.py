@@ -347,18 +347,19 @@ class DeferredRenderer:
         worked out once, an animated one's again for each new t (all passes of a frame share them)."""
         placed = self._placement
         if placed is None:
-            models = [o.model_matrix(t) for o in self.scene.objects]
-            placed = self._placement = _Placement(
-                t, models, [gl_matrix(m) for m in models],
-                np.stack([np.c_[gm.box_corners, np.ones(8)] @ m.T for m, gm in zip(models, self.meshes)]),
-                [bool(np.linalg.det(m[:3, :3]) < 0) for m in models])
+            n = len(self.scene.objects)
+            placed = self._placement = _Placement(t, [None] * n, [b""] * n, np.empty((n, 8, 4)), [False] * n)
+            objects = range(n)
         elif self._animated_objects and placed.t != t:
-            for i in self._animated_objects:
-                m = placed.models[i] = self.scene.objects[i].model_matrix(t)
-                placed.model_bytes[i] = gl_matrix(m)
-                placed.boxes[i] = np.c_[self.meshes[i].box_corners, np.ones(8)] @ m.T
-                placed.mirrored[i] = bool(np.linalg.det(m[:3, :3]) < 0)
-            placed.t = t
+            objects = self._animated_objects
+        else:
+            return placed
+        for i in objects:
+            m = placed.models[i] = self.scene.objects[i].model_matrix(t)
+            placed.model_bytes[i] = gl_matrix(m)
+            placed.boxes[i] = np.c_[self.meshes[i].box_corners, np.ones(8)] @ m.T
+            placed.mirrored[i] = bool(np.linalg.det(m[:3, :3]) < 0)
+        placed.t = t
         return placed
 
     def visible_objects(self, camera: Camera, t: float) -> np.ndarray:
