@@ -112,8 +112,12 @@ class ServerSessionConfig:
     """How a server session predicts and queues.
 
     ``downlink_s`` is the expected time from a frame's send to its display (link latency, plus whatever the client
-    adds); the display time a frame is predicted for is the client's clock now + the running encode-time estimate +
-    ``downlink_s``, at most ``max_prediction_s`` ahead. ``clock_offset_s`` is the client's clock minus the driver's
+    adds). A frame is shown from then until the next one replaces it, one frame interval later
+    (:meth:`ServerSession.display_interval_s`), so it is predicted for ``hold_share`` of the way into that time (0.5:
+    its middle, where the pose error over the time it is shown is least): the client's clock now + the running
+    encode-time estimate + ``downlink_s`` + ``hold_share`` times the interval, at most ``max_prediction_s`` ahead.
+    The encode-time estimate starts at ``encode_s`` and takes the first frame's measured time as it is, then a
+    running mean. ``clock_offset_s`` is the client's clock minus the driver's
     clock when it is known (0 in virtual time, where both share one clock); ``None`` estimates it from the newest
     pose (its ``t_client`` minus its arrival time), as a live server must. Frames start at least
     ``min_frame_interval_s`` apart (a flood guard: poses that come faster coalesce, and the frame for the newest one
@@ -127,6 +131,7 @@ class ServerSessionConfig:
     predictor: PredictorSettings | None = None   # None: quadcast.protocol.prediction.DEFAULT_PREDICTOR
     downlink_s: float = 0.04
     max_prediction_s: float = 0.5
+    hold_share: float = 0.5
     encode_s: float = 0.0
     clock_offset_s: float | None = None
     queue_frames: int = 3
@@ -143,6 +148,8 @@ class ServerSessionConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"ServerSessionConfig.{name}: expected a finite number >= 0, got {v!r}")
+        if not (np.isfinite(self.hold_share) and 0 <= self.hold_share <= 1):
+            raise ValueError(f"ServerSessionConfig.hold_share: expected a number in [0, 1], got {self.hold_share!r}")
         if self.queue_frames < 1:
             raise ValueError(f"ServerSessionConfig.queue_frames: expected >= 1, got {self.queue_frames}")
         if self.rate is not None and self.point is not None:
@@ -240,7 +247,9 @@ class ServerSession:
         self._encoding = False
         self.counters.frames_encoded += 1
         self.counters.encode_s_total += encode_s
-        self.encode_estimate_s = (1 - ENCODE_EMA) * self.encode_estimate_s + ENCODE_EMA * encode_s
+        # the first measurement replaces the configured guess (a live server's 0 would take five frames to outgrow)
+        weight = 1.0 if self.counters.frames_encoded == 1 else ENCODE_EMA
+        self.encode_estimate_s = (1 - weight) * self.encode_estimate_s + weight * encode_s
         if self.queue.push(frame, self_contained):
             self._want_reference = True          # a frame was refused: the next one must stand alone
         if self.rate is not None:
@@ -267,6 +276,11 @@ class ServerSession:
         is longer (and no less than the flood guard's interval)."""
         interval = max(self.pose_interval_s or 0.0, self.encode_estimate_s, self.config.min_frame_interval_s)
         return interval if interval > 0 else 1.0 / 30.0
+
+    def display_interval_s(self) -> float:
+        """How long a frame is expected to be shown: the time until the next one, which starts no sooner than the
+        least interval between starts allows (:meth:`frame_interval_s`, :meth:`min_interval_s`)."""
+        return max(self.frame_interval_s(), self.min_interval_s())
 
     @property
     def point(self) -> OperatingPoint | None:
@@ -337,7 +351,8 @@ class ServerSession:
 
     def _start(self, now: float) -> EncodeFrame:
         cfg = self.config
-        lead = min(self.encode_estimate_s + cfg.downlink_s, cfg.max_prediction_s)
+        lead = min(self.encode_estimate_s + cfg.downlink_s + cfg.hold_share * self.display_interval_s(),
+                   cfg.max_prediction_s)
         display_t = self.client_clock(now) + lead
         _, _, position, quat = self._latest
         if cfg.predict:

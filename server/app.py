@@ -80,7 +80,7 @@ class ServerConfig:
     viewcell_m: float = 0.5
     reference_every: int = 5
     crf: float | None = None            # None: each method's own (quadcast.protocol.methods.DEFAULT_CRF)
-    lead_ms: float = 40.0               # display time - render start, beyond the measured encode time
+    lead_ms: float = 40.0               # a frame's first display - render start, beyond the measured encode time
     predict: bool = True
     max_prediction_s: float = 0.5       # never extrapolate the pose further ahead (the predictor is kinematic)
     max_frame_hz: float = 60.0          # flood guard: frames start at most this often, however fast poses come

@@ -52,20 +52,50 @@ def test_frame_queue_drops_stale_frames_but_never_a_dependency():
 # -------------------------------------------------------------------------------------------- server
 
 def test_server_encodes_each_pose_and_predicts_the_display_time():
-    s = ServerSession(ServerSessionConfig(downlink_s=0.05, clock_offset_s=0.0))
+    s = ServerSession(ServerSessionConfig(downlink_s=0.05, clock_offset_s=0.0, hold_share=0.0))
     d = s.pose_received(0.0, 0.0, *_pose(0.0))
     assert isinstance(d, EncodeFrame) and d.display_t == pytest.approx(0.05) and not d.reference
     assert s.pose_received(0.01, 0.01, *_pose(0.01)) is None          # busy: coalesces
     assert s.pose_received(0.02, 0.02, *_pose(0.02)) is None
     d = s.frame_encoded(0.03, "f0", True, 0.03)                       # the next frame starts at once, newest pose
     assert d is not None and d.started == 0.03
-    # constant velocity 1 m/s along x, extrapolated to the display time
-    assert d.display_t == pytest.approx(0.03 + 0.2 * 0.03 + 0.05)
+    # constant velocity 1 m/s along x, extrapolated to the display time: the first encode time taken as it is
+    assert d.display_t == pytest.approx(0.03 + 0.03 + 0.05)
     assert d.position[0] == pytest.approx(d.display_t, abs=1e-9)
     assert s.next_to_send() == "f0" and s.next_to_send() is None
     assert s.frame_encoded(0.05, "f1", False, 0.02) is None           # nothing new arrived
     assert s.pose_received(0.04, 0.015, *_pose(0.015)) is None         # out of order: ignored
     assert s.counters.poses_ignored == 1 and s.counters.frames_encoded == 2
+
+
+def test_server_aims_each_frame_into_the_time_it_is_shown():
+    """A frame is shown from its arrival until the next one replaces it: it is predicted for hold_share of the way
+    into that time. Here the encoder sets the pace (0.2 s a frame, poses every 10 ms), so the interval is the
+    running encode-time estimate: the first frame's time, then a running mean."""
+    share, downlink = 0.5, 0.04
+    s = ServerSession(ServerSessionConfig(downlink_s=downlink, clock_offset_s=0.0, hold_share=share))
+    d = s.pose_received(0.0, 0.0, *_pose(0.0))
+    assert d.display_t == pytest.approx(downlink + share / 30)         # nothing measured yet: 30 frames/s assumed
+    now = 0.0
+    for k in range(1, 21):                                             # poses every 10 ms while it encodes
+        s.pose_received(now + 0.01 * k, now + 0.01 * k, *_pose(now + 0.01 * k))
+    d = s.frame_encoded(0.2, "f0", True, 0.2)
+    assert s.encode_estimate_s == pytest.approx(0.2) and s.display_interval_s() == pytest.approx(0.2)
+    assert d.display_t == pytest.approx(0.2 + 0.2 + downlink + share * 0.2)
+    assert d.position[0] == pytest.approx(d.display_t, abs=1e-9)      # 1 m/s along x, extrapolated to it
+    for k in range(1, 11):
+        s.pose_received(0.2 + 0.01 * k, 0.2 + 0.01 * k, *_pose(0.2 + 0.01 * k))
+    d = s.frame_encoded(0.3, "f1", False, 0.1)                        # a faster frame: the running mean
+    estimate = 0.8 * 0.2 + 0.2 * 0.1
+    assert s.encode_estimate_s == pytest.approx(estimate)
+    assert d.display_t == pytest.approx(0.3 + estimate + downlink + share * estimate)
+    # a frame rate cap longer than the encode time sets the interval instead
+    capped = ServerSession(ServerSessionConfig(downlink_s=downlink, clock_offset_s=0.0, min_frame_interval_s=0.5,
+                                               max_prediction_s=2.0))
+    d = capped.pose_received(0.0, 0.0, *_pose(0.0))
+    assert d.display_t == pytest.approx(downlink + 0.5 * 0.5)
+    with pytest.raises(ValueError, match="hold_share"):
+        ServerSessionConfig(hold_share=1.5)
 
 
 def test_server_reference_requests_and_refused_frames_make_the_next_frame_self_contained():
@@ -82,7 +112,7 @@ def test_server_reference_requests_and_refused_frames_make_the_next_frame_self_c
 
 
 def test_server_estimates_the_client_clock_and_caps_the_horizon():
-    s = ServerSession(ServerSessionConfig(downlink_s=0.04, max_prediction_s=0.1, predict=False))
+    s = ServerSession(ServerSessionConfig(downlink_s=0.04, max_prediction_s=0.1, predict=False, hold_share=0.0))
     d = s.pose_received(100.0, 7.0, *_pose(0.0))             # the client's clock is 93 s behind ours
     assert d.display_t == pytest.approx(7.04)
     s.frame_encoded(100.5, "f", True, 0.5)                   # a slow encode: the lead is capped

@@ -224,7 +224,9 @@ def add_live_commands(sub) -> None:
     p.add_argument("--reference-every", type=int, default=5, help="a reference frame at least every K frames")
     p.add_argument("--crf", type=float, help="x264 constant rate factor (default: the method's own)")
     p.add_argument("--lead-ms", type=float, default=40.0,
-                   help="render for the pose predicted this far beyond the measured encode time")
+                   help="the time from a frame's send to its first display: each frame is rendered for the pose "
+                        "predicted this far beyond the measured encode time, plus half the frame interval (the "
+                        "middle of the time it is shown)")
     p.add_argument("--no-predict", action="store_true", help="render the last received pose as is")
     p.add_argument("--adapt", action="store_true",
                    help="rate adaptation: each session's controller estimates the link from the client's receive "
