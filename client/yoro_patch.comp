@@ -38,11 +38,6 @@ uniform int u_kernel_max;           // Patcher kernel width cap (ImBuffer pixels
 layout(std430, binding = 5) readonly buffer SameBits { uint same_bits[]; };   // the row pass's (yoro_scan.comp)
 #endif
 #include "yoro_patch.glsl"
-#if SAME_BITS
-bool same_neighbours(int x, int y) {
-    return ((same_bits[y * ROW_WORDS + (x >> 5)] >> uint(x & 31)) & 1u) != 0u;
-}
-#endif
 
 void main() {
     ivec2 size = imageSize(u_out);

@@ -4,14 +4,17 @@
 // conservative edge reject of stereo shading reprojection's triangle filter when EDGES: a covered pixel whose
 // source lies within u_edge_radius of something nearer is not trusted). The includer declares the images
 // u_imbuffer, u_out (rgba8) and u_mask (rg8) and the defines LINEAR, COARSE and EDGES (see yoro_patch.comp);
-// with SAME_BITS the includer defines `same_neighbours(x, y)`, whether source pixels x and x + 1 of row y are on
-// one surface, from the bits the fused row pass keeps (yoro_scan.comp), instead of fetching both depths.
+// with SAME_BITS the includer declares the buffer `same_bits[]` (ROW_WORDS words a row) of the bits the fused row
+// pass keeps (yoro_scan.comp), which `same_neighbours` reads instead of fetching both depths.
 #include "stereo_common.glsl"
 #ifndef SAME_BITS
 #define SAME_BITS 0
 #endif
 #if SAME_BITS
-bool same_neighbours(int x, int y);
+// Whether source pixels x and x + 1 of row y are on one surface: bit x % 32 of word y * ROW_WORDS + x / 32.
+bool same_neighbours(int x, int y) {
+    return ((same_bits[y * ROW_WORDS + (x >> 5)] >> uint(x & 31)) & 1u) != 0u;
+}
 #endif
 
 uniform sampler2D u_color;          // dominant eye, lit sRGB (GL rows, bottom first)

@@ -31,9 +31,6 @@ layout(std430, binding = 3) buffer Holes { uint hole_count; uint holes[]; };   /
 // (client/stereo.py). Sweep 1 writes its row's, sweep 2 and the hole pass (yoro_patch.comp, FIND_RUNS) read them.
 layout(std430, binding = 5) buffer SameBits { uint same_bits[]; };
 #include "yoro_patch.glsl"
-bool same_neighbours(int x, int y) {
-    return ((same_bits[y * ROW_WORDS + (x >> 5)] >> uint(x & 31)) & 1u) != 0u;
-}
 #else
 layout(rg32f, binding = 0) readonly uniform image2D u_targets;
 layout(rgba32f, binding = 4) writeonly uniform image2D u_records;   // the disocclusions' (stereo_common.glsl)
