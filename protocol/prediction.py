@@ -117,14 +117,16 @@ class PredictorSettings:
 
 DEFAULT_PREDICTOR = PredictorSettings(
     position=MotionModel(order=1, window=3, damping_s=None, clamp=True),
-    rotation=MotionModel(order=1, window=2, damping_s=0.15, clamp=True),
+    rotation=MotionModel(order=1, window=2, damping_s=0.3, clamp=True),
 )
-"""The predictor the session core uses, chosen by measurement on the two real head traces at 20±10 and 50±20 ms
-(``quadcast predict``, 4 seeds; README): of polynomial orders 1-3, windows 2-7, damping none/20-300 ms, with and
-without the clamp and absolute speed caps, constant velocity was best for both -- position fitted over 3 samples
-(0.20-0.22x the error of not predicting), rotation from the last 2 with 150 ms damping (0.48-0.58x; undamped
-0.50-0.62x). Acceleration terms lose (rotation 0.82-0.86x clamped at 50±20 ms, above 1x unclamped, where they
-overshoot the bound after reversals) and so do caps at human walking speeds (these traces move up to 5.8 m/s)."""
+"""The predictor the session core uses, chosen by measurement on the two real head traces (``quadcast predict``,
+4 seeds; README): of polynomial orders 1-3, windows 2-7, damping none/20-600 ms, with and without the clamp and
+absolute speed caps, constant velocity was best for both -- position fitted over 3 samples, undamped (0.20-0.22x
+the error of not predicting at 40-100 ms horizons, 0.28-0.30x at 500 ms), rotation from the last 2 with its horizon
+damped at 300 ms (0.48-0.58x at 40-100 ms, 0.69-0.74x at 500 ms, the live demo's horizon on a slow machine): within
+2.1% of the best time constant at every horizon from 40 to 500 ms, where 150 ms was best at 40 ms by that much and
+12.5% worse at 500 ms. Acceleration terms lose (rotation 0.82-0.86x clamped at 50±20 ms, above 1x unclamped, where
+they overshoot the bound after reversals) and so do caps at human walking speeds (these traces move up to 5.8 m/s)."""
 
 
 UNCLAMPED_ACCELERATION = PredictorSettings(

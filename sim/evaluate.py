@@ -43,6 +43,7 @@ from quadcast.sim.report import FrameImages, format_figure, write_frames_csv, wr
 WALLCLOCK_KEYS = ("server_ms", "client_ms")
 WORST_FRAMES = 3
 FOVEA_RADIUS_DEG = 10.0
+MAX_SERVER_FRAME_MS = 10_000.0   # --server-frame-ms: a server slower than a frame in 10 s replays nothing useful
 """`flip_fovea` is FLIP over the pixels within this many degrees of the gaze point (the central 20 degrees)."""
 
 
@@ -74,6 +75,8 @@ class EvalSpec:
     point: str | OperatingPoint | None = None   # a fixed operating point: a ladder point's name or "key=value,..."
     ladder: str | None = None      # the ladder file (default: the measured one shipped with quadcast)
     gaze: str | None = None        # a gaze trace (sim/gaze.py): foveation and flip_fovea around it, not the centre
+    server_frame_ms: float = 0.0   # virtual time the server takes per frame (a live server's measured frame time
+    #                                replays the rate it kept; 0: the server keeps the 30 Hz pose rate)
 
 
 def resolve_point(spec: str | OperatingPoint, ladder: Ladder) -> OperatingPoint:
@@ -173,6 +176,9 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
         raise ValueError("--point fixes the operating point; --adapt chooses it: give one of them")
     if spec.rate_trace is not None and spec.rate_mbit is not None:
         raise ValueError("--rate and --rate-trace both set the downlink's rate: give one of them")
+    if not (np.isfinite(spec.server_frame_ms) and 0 <= spec.server_frame_ms <= MAX_SERVER_FRAME_MS):
+        raise ValueError(f"--server-frame-ms: expected a time in [0, {MAX_SERVER_FRAME_MS:g}] ms, got "
+                         f"{spec.server_frame_ms!r}")
     from quadcast.sim.ratetrace import resolve_rate_trace
     rate_trace = resolve_rate_trace(spec.rate_trace) if spec.rate_trace is not None else None
     ladder = load_ladder(spec.ladder) if adapt or isinstance(spec.point, str) else None
@@ -187,7 +193,8 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     predictor = spec.predictor or DEFAULT_PREDICTOR
     rc = ReplayConfig(latency_ms=spec.latency_ms, jitter_ms=spec.jitter_ms, rate_mbit=spec.rate_mbit,
                       loss=spec.loss, predict=spec.predict, predictor=predictor, seed=spec.seed, rate_trace=rate_trace,
-                      rate=RateConfig(ladder, spec.target_mbps) if adapt else None, point=point, gaze=gaze)
+                      rate=RateConfig(ladder, spec.target_mbps) if adapt else None, point=point, gaze=gaze,
+                      server_delay_ms=spec.server_frame_ms)
     stereo = _stereo_scorer(renderer, spec, client) if spec.stereo else None
     scorer = _Scorer(renderer, spec.width, spec.height, cfg.fovy_deg, stereo, gaze)
     bar = tqdm(total=spec.frames, desc=f"eval {spec.method}", unit="frame", disable=quiet, leave=False)
@@ -216,7 +223,7 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     c = totals.client
     run = {"latency_ms": spec.latency_ms, "jitter_ms": spec.jitter_ms, "rate_mbit": spec.rate_mbit,
            "loss": spec.loss, "viewcell_m": spec.viewcell_m, "display_frames": spec.frames, "every": spec.every,
-           "seed": spec.seed, "predict": spec.predict,
+           "seed": spec.seed, "predict": spec.predict, "server_frame_ms": spec.server_frame_ms,
            "predictor": str(predictor) if spec.predict else None, "mbps": rate(totals.bytes_total),
            "mbps_video": rate(totals.bytes_video), "mbps_geometry": rate(totals.bytes_geometry),
            "server_frames": totals.frames_sent, "frames_applied": c.frames_applied,

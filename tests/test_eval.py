@@ -62,6 +62,9 @@ def test_bad_eval_input_is_named():
         run_eval(EvalSpec(method="teleport", **TINY))
     with pytest.raises(ValueError, match="lasts"):
         run_eval(EvalSpec(method="atw", **{**TINY, "frames": 100000}))
+    for bad in (-1.0, float("nan"), 1e9):
+        with pytest.raises(ValueError, match="--server-frame-ms"):
+            run_eval(EvalSpec(method="atw", server_frame_ms=bad, **TINY))
 
 
 def test_sweep_writes_a_comparison_table(tmp_path):

@@ -184,7 +184,7 @@ def test_settings_validation():
         PosePredictor().observe(0.0, [0, 0, 0], [0, 0, 0, 0])
     with pytest.raises(ValueError, match="position"):
         PosePredictor().observe(0.0, [0, 0], [0, 0, 0, 1])
-    assert "damping 150 ms" in str(DEFAULT_PREDICTOR)
+    assert "damping 300 ms" in str(DEFAULT_PREDICTOR)
 
 
 # -- prediction_errors -------------------------------------------------------------

@@ -184,7 +184,8 @@ def _eval_spec(args):
                     loss=parse_loss(args.loss) if args.loss else 0.0, viewcell_m=args.viewcell, width=w, height=h,
                     frames=args.frames, every=args.every, stereo=args.stereo, seed=args.seed,
                     predict=not args.no_predict, crf=args.crf, rate_trace=args.rate_trace, adapt=args.adapt,
-                    target_mbps=args.target_mbps, point=args.point, ladder=args.ladder, gaze=args.gaze)
+                    target_mbps=args.target_mbps, point=args.point, ladder=args.ladder, gaze=args.gaze,
+                    server_frame_ms=args.server_frame_ms)
 
 
 def cmd_eval(args) -> int:
@@ -355,6 +356,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gaze", help="a gaze trace ('t_ms x_deg y_deg' per line, angles from the view axis): foveated "
                                   "points and FLIP over the central 20 degrees follow it (default: the view centre)")
     p.add_argument("--loss", help="downlink message loss, e.g. 0.5%%")
+    p.add_argument("--server-frame-ms", type=float, default=0.0,
+                   help="virtual time the server takes per frame (e.g. a live server's measured frame time, to "
+                        "replay the frame rate it kept; default 0: it keeps the 30 Hz pose rate)")
     p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
     p.add_argument("--size", default="960x540", help="WxH")
     p.add_argument("--frames", type=int, default=120, help="client display frames at 60 Hz")

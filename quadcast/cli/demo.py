@@ -124,7 +124,8 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
              record_every: int = 3, compare: bool = True) -> int:
     """Start server, link and client; print the client's figures and where the report is. With `compare`, then
     replay the same walk at the same size over the same link model in virtual time (:func:`virtual_twin`) and print
-    both FLIPs: what the live system lost to this machine's speed."""
+    both FLIPs: what the live system lost to this machine's speed; and once more with the server taking the live
+    run's time per received frame: how much of that loss is the server's frame rate."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     children: list[Child] = []
@@ -177,6 +178,16 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
                   f"server frames/s, FLIP {fmt(v['flip'], '.4f')}  SSIM {fmt(v['ssim'], '.4f')}  PSNR "
                   f"{fmt(v['psnr'], '.2f')} dB; live FLIP / virtual-time FLIP = {fmt(ratio, '.2f')} "
                   f"(report -> {out / 'virtual' / 'report.html'})")
+            if s.get("server_frames"):
+                frame_ms = round(1e3 * s["duration_s"] / s["server_frames"], 1)
+                slow = virtual_twin(out / "virtual_live_rate", size, duration, quiet, server_frame_ms=frame_ms)
+                ratio = s["flip"] / slow["flip"] if s.get("flip") is not None and slow.get("flip") else None
+                print(f"demo: again with the server taking the live run's {frame_ms:g} ms a frame received "
+                      f"(... --server-frame-ms {frame_ms:g}): "
+                      f"{slow['server_frames'] / (slow['display_frames'] / 60):.1f} server frames/s, FLIP "
+                      f"{fmt(slow['flip'], '.4f')}  SSIM {fmt(slow['ssim'], '.4f')}; live FLIP / this FLIP = "
+                      f"{fmt(ratio, '.2f')}: what the live run lost besides its frame rate "
+                      f"(report -> {out / 'virtual_live_rate' / 'report.html'})")
         return 0
     except KeyboardInterrupt:
         print("demo: interrupted; stopping the processes", file=sys.stderr)
@@ -190,13 +201,14 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
         signal.signal(signal.SIGTERM, previous)
 
 
-def virtual_twin(out: Path, size: str, duration: float, quiet: bool = False) -> dict:
+def virtual_twin(out: Path, size: str, duration: float, quiet: bool = False, server_frame_ms: float = 0.0) -> dict:
     """The demo's run in virtual time: quasar, builtin:walk in builtin:courtyard, `duration` s at 60 Hz, 20±10 ms,
-    about 60 frames scored; the server keeps its 30 Hz whatever the machine's speed. Returns its summary."""
+    about 60 frames scored; the server keeps its 30 Hz whatever the machine's speed, or, with `server_frame_ms`,
+    takes that much virtual time per frame. Returns its summary."""
     from quadcast.render.camera import parse_size
     from quadcast.sim.evaluate import EvalSpec, run_eval
     w, h = parse_size(size)
     frames = int(round(duration * 60))
     spec = EvalSpec(scene="builtin:courtyard", trace="builtin:walk", method="quasar", latency_ms=20.0, jitter_ms=10.0,
-                    width=w, height=h, frames=frames, every=max(1, frames // 60))
+                    width=w, height=h, frames=frames, every=max(1, frames // 60), server_frame_ms=server_frame_ms)
     return run_eval(spec, out, quiet=quiet)
