@@ -12,7 +12,7 @@ So the same events give the same decisions in both (``tests/test_session.py`` ch
 Server side -- events: :meth:`ServerSession.pose_received`, :meth:`~ServerSession.reference_requested`,
 :meth:`~ServerSession.frame_encoded`, :meth:`~ServerSession.frame_sent`, :meth:`~ServerSession.report_received`;
 decisions: :class:`EncodeFrame` (render and encode for this predicted pose and display time, self-contained or
-not, at this operating point) and the frames to send, in order, from :meth:`~ServerSession.next_to_send` (a
+not, at this operating point, with how far the head strayed from the last frames' predicted rotations) and the frames to send, in order, from :meth:`~ServerSession.next_to_send` (a
 bounded queue that drops stale frames but never breaks a reference chain). With a rate controller
 (``ServerSessionConfig.rate``, :mod:`quadcast.protocol.rate`) the session also picks each frame's operating point
 from the client's receive reports and holds new frames back while the link is backed up.
@@ -45,6 +45,9 @@ ENCODE_EMA = 0.2
 """Weight of the newest encode time in the server's running estimate."""
 
 POSE_INTERVAL_EMA = 0.2
+
+MISS_FRAMES = 8
+"""How many of the last frames' rotation misses :meth:`ServerSession.rotation_miss_deg` averages."""
 """Weight of the newest pose interval in the server's running estimate (the frame rate the controller plans for)."""
 
 
@@ -168,6 +171,9 @@ class EncodeFrame:
     started: float        # driver clock when the decision was made
     point: OperatingPoint | None = None    # the operating point to encode at (None: the method's own settings)
     point_index: int | None = None         # its index in the rate controller's ladder
+    # how far the head's rotation strayed from the predicted one while recent frames were shown (degrees;
+    # ServerSession.rotation_miss_deg): what a view wider than the frame must cover. None: not measured yet
+    rotation_miss_deg: float | None = None
 
 
 @dataclass
@@ -213,6 +219,10 @@ class ServerSession:
         self._queued_points: collections.deque = collections.deque(maxlen=self.config.queue_frames + 2)
         self._popped_point: tuple[int | None, bool] = (None, False)    # (point, self-contained) of the frame popped
         self._paced = False                          # the last start was held back by the rate controller
+        # frames being shown or about to be: [start, end of the expected hold (client clock), predicted rotation,
+        # the largest angle (degrees) between it and a pose the client sent within the hold so far]
+        self._aims: collections.deque = collections.deque(maxlen=MISS_FRAMES)
+        self._misses: collections.deque = collections.deque(maxlen=MISS_FRAMES)   # finished frames' largest angles
 
     # -- events
 
@@ -227,6 +237,7 @@ class ServerSession:
             self.counters.poses_ignored += 1
             return None
         latest = self.predictor.latest
+        self._check_aims(latest.t, latest.quat)
         if self._latest is not None:
             dt = latest.t - self._latest[1]
             self.pose_interval_s = dt if self.pose_interval_s is None else \
@@ -235,6 +246,21 @@ class ServerSession:
         self._last_traffic = float(now)
         self._pose_pending = True
         return self._maybe_start(now)
+
+    def _check_aims(self, t_client: float, quat: np.ndarray) -> None:
+        """Compare a pose the client sent with the rotation predicted for the frames shown at its time."""
+        q = np.asarray(quat, np.float64)
+        while self._aims and self._aims[0][1] < t_client:
+            self._misses.append(self._aims.popleft()[3])
+        for aim in self._aims:
+            if aim[0] <= t_client:
+                cos_half = min(1.0, abs(float(np.dot(aim[2], q))))
+                aim[3] = max(aim[3], float(np.degrees(2.0 * np.arccos(cos_half))))
+
+    def rotation_miss_deg(self) -> float | None:
+        """The mean over the last :data:`MISS_FRAMES` frames shown of the largest angle between a frame's predicted
+        rotation and the client's poses while it was shown (None before a frame's hold has passed)."""
+        return float(np.mean(self._misses)) if self._misses else None
 
     def reference_requested(self, now: float) -> None:
         """The client lost its reference state: the next frame is self-contained."""
@@ -370,7 +396,11 @@ class ServerSession:
         # the client's): extrapolation past the edge of the range stops at it
         position = np.clip(np.asarray(position, np.float64), -MAX_POSITION_M, MAX_POSITION_M)
         display_t = float(np.clip(display_t, -MAX_TIME_S, MAX_TIME_S))
-        return EncodeFrame(position, np.asarray(quat, np.float64), display_t, reference, float(now), point, index)
+        quat = np.asarray(quat, np.float64)
+        # shown from its arrival until the next frame's, about one interval: the hold the miss is measured over
+        arrival = display_t - cfg.hold_share * self.display_interval_s()
+        self._aims.append([arrival, arrival + self.display_interval_s(), quat / np.linalg.norm(quat), 0.0])
+        return EncodeFrame(position, quat, display_t, reference, float(now), point, index, self.rotation_miss_deg())
 
 
 # ------------------------------------------------------------------------------------------------ client

@@ -202,11 +202,13 @@ class SessionPipeline:
                               viewcell_radius=spec.viewcell_m, reference_every=spec.reference_every, crf=spec.crf)
         self.server = spec.make_server(spec.method, self.renderer, config)
 
-    def encode(self, position, quat, t: float, reference: bool, point=None) -> tuple[bytes, bool]:
+    def encode(self, position, quat, t: float, reference: bool, point=None,
+               rotation_miss_deg: float | None = None) -> tuple[bytes, bool]:
         if reference:
             self.server.request_reference()
         if point is not None:
             self.server.apply_operating_point(point)
+        self.server.set_rotation_miss(rotation_miss_deg)
         payload = self.server.encode(Pose(np.asarray(position, np.float64), np.asarray(quat, np.float64)), t)
         return encode_frame_payload(payload), payload.self_contained
 
@@ -233,10 +235,11 @@ class SessionHost:
         self.pipeline = SessionPipeline(spec, scene=self.scene)
         return os.getpid()
 
-    def encode(self, position, quat, t: float, reference: bool, point=None) -> tuple[bytes, bool]:
+    def encode(self, position, quat, t: float, reference: bool, point=None,
+               rotation_miss_deg: float | None = None) -> tuple[bytes, bool]:
         if self.pipeline is None:
             raise RuntimeError("SessionHost.encode: no pipeline built")
-        return self.pipeline.encode(position, quat, t, reference, point)
+        return self.pipeline.encode(position, quat, t, reference, point, rotation_miss_deg)
 
     def close(self) -> None:
         if self.pipeline is not None:
@@ -262,8 +265,9 @@ class _ThreadWorker:
                                                timeout)
         return self.pid
 
-    async def encode(self, position, quat, t: float, reference: bool, point=None) -> tuple[bytes, bool]:
-        return await self.gl.call(self.pipeline.encode, position, quat, t, reference, point)
+    async def encode(self, position, quat, t: float, reference: bool, point=None,
+                     rotation_miss_deg: float | None = None) -> tuple[bytes, bool]:
+        return await self.gl.call(self.pipeline.encode, position, quat, t, reference, point, rotation_miss_deg)
 
     @property
     def death(self) -> str | None:
@@ -301,9 +305,10 @@ class _ProcessWorker:
         self.pid = await asyncio.wait_for(self.proc.call("build", self.spec), timeout)
         return self.pid
 
-    async def encode(self, position, quat, t: float, reference: bool, point=None) -> tuple[bytes, bool]:
+    async def encode(self, position, quat, t: float, reference: bool, point=None,
+                     rotation_miss_deg: float | None = None) -> tuple[bytes, bool]:
         return await self.proc.call("encode", np.asarray(position), np.asarray(quat), float(t), bool(reference),
-                                    point)
+                                    point, rotation_miss_deg)
 
     @property
     def death(self) -> str | None:
@@ -517,7 +522,8 @@ class Session:
         """One frame from the worker, as the wire message that carries it (the worker's bytes, not re-encoded)."""
         try:
             data, self_contained = await self.worker.encode(decision.position, decision.quat, decision.display_t,
-                                                            decision.reference, decision.point)
+                                                            decision.reference, decision.point,
+                                                            decision.rotation_miss_deg)
         except WorkerDied as exc:
             raise SessionError(ErrorCode.INTERNAL, f"session worker died: {exc}") from None
         except WorkerError as exc:

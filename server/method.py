@@ -24,6 +24,11 @@ class MethodServer(ABC):
     def set_gaze(self, gaze) -> None:
         """The viewer's gaze direction (view space) for the next frames (methods without foveation ignore it)."""
 
+    def set_rotation_miss(self, degrees: float | None) -> None:
+        """How far the viewer's rotation strayed from the predicted one while recent frames were shown
+        (:meth:`quadcast.protocol.session.ServerSession.rotation_miss_deg`; None: unknown). Methods that send
+        content beyond the view may size it by this; the others ignore it."""
+
     def request_reference(self) -> None:
         """The client lost its reference state: make the next frame self-contained (default: every frame is)."""
 

@@ -38,8 +38,10 @@ class QuasarSettings:
     # shows whatever lies beyond it, so its pixels go where a head turn before the next frame looks. 120 deg at 0.5
     # (QuadStream's) spread them 1.6x thinner: on the real-trace benchmark FLIP fell 1-3% on every row at the same
     # or a lower rate (README, "Wide view"). When frames come farther apart (a live server on a slow machine), the
-    # view widens to cover what a head turning at wide_turn_dps sees move in over the mean interval between the
-    # last frames' display times, up to wide_fovy_max_deg; same pixels, so the atlas keeps its size.
+    # view widens, up to wide_fovy_max_deg (same pixels, so the atlas keeps its size), to cover on each side how far
+    # the head's rotation strayed from the predicted one while recent frames were shown (set_rotation_miss, from
+    # the session core); until that is known, what a head turning at wide_turn_dps sees move in over the mean
+    # interval between the last frames' display times.
     wide_fovy_deg: float = 75.0
     wide_fovy_max_deg: float = 120.0
     wide_turn_dps: float = 120.0
@@ -126,6 +128,7 @@ class QuasarServer(MethodServer):
         self._display_times: list[float] = []   # the last frames' display times (the wide view's FOV)
         self._force_reference = True
         self.point: OperatingPoint | None = None      # the operating point applied last (None: the settings as given)
+        self.rotation_miss_deg: float | None = None   # set_rotation_miss: the wide view's margin on each side
 
     def _split(self, params: QuadParams) -> QuadParams:
         """With a far field and a split distance, geometry beyond the split gets no quads (the far field shows it)."""
@@ -213,19 +216,26 @@ class QuasarServer(MethodServer):
                 or camera.pose.distance_to(ref.pose) > self.s.reference_distance
                 or camera.pose.angle_to_deg(ref.pose) > self.s.reference_angle_deg)
 
+    def set_rotation_miss(self, degrees: float | None) -> None:
+        if degrees is not None and not (np.isfinite(degrees) and degrees >= 0):
+            raise ValueError(f"QuasarServer.set_rotation_miss: expected degrees >= 0 or None, got {degrees!r}")
+        self.rotation_miss_deg = None if degrees is None else float(degrees)
+
     def _wide_fovy(self, t: float) -> float:
         """Record that the frame being made is displayed at `t`, and return its wide view's vertical FOV: the
-        view's own plus, on each side, the turn `wide_turn_dps` makes in the mean interval between the last nine
-        frames' display times, within [wide_fovy_deg, wide_fovy_max_deg]. Display times that go back (a new
-        trace) start the count again."""
+        view's own plus, on each side, the rotation miss (`set_rotation_miss`) or, while that is unknown, the turn
+        `wide_turn_dps` makes in the mean interval between the last nine frames' display times; within
+        [wide_fovy_deg, wide_fovy_max_deg]. Display times that go back (a new trace) start the count again."""
         s, times = self.s, self._display_times
         if times and t < times[-1]:
             times.clear()
         times.append(float(t))
         del times[:-9]
-        interval = (times[-1] - times[0]) / (len(times) - 1) if len(times) > 1 else 0.0
-        fovy = s.fovy_deg + 2.0 * s.wide_turn_dps * interval
-        return float(np.clip(fovy, s.wide_fovy_deg, s.wide_fovy_max_deg))
+        if self.rotation_miss_deg is not None:
+            margin = self.rotation_miss_deg
+        else:
+            margin = s.wide_turn_dps * ((times[-1] - times[0]) / (len(times) - 1) if len(times) > 1 else 0.0)
+        return float(np.clip(s.fovy_deg + 2.0 * margin, s.wide_fovy_deg, s.wide_fovy_max_deg))
 
     def encode(self, pose: Pose, t: float) -> FramePayload:
         s, ctx = self.s, self.ctx

@@ -157,6 +157,7 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
             in_flight = None
             if config.gaze is not None:      # the gaze the client sent with its newest pose, an uplink latency ago
                 server.set_gaze(config.gaze.direction_at(decision.started - config.latency_ms / 1e3))
+            server.set_rotation_miss(decision.rotation_miss_deg)
             payload = server.encode(Pose(decision.position, decision.quat), decision.display_t)
             points[payload.frame_id] = decision.point_index
             encode(server_session.frame_encoded(ready, payload, payload.self_contained, ready - decision.started))

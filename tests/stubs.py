@@ -14,6 +14,7 @@ class StubServer:
 
     def __init__(self, size: int = 1000, every: int = 3, scale: float = 1.0, first_reference: bool = False):
         self.frame_id, self.force, self.size, self.every, self.scale = 0, first_reference, size, every, scale
+        self.rotation_misses: list = []     # what the driver told it before each frame (set_rotation_miss)
 
     def apply_operating_point(self, point):
         self.size = int(point.mbps * 1e6 / 8 / min(point.fps, 30.0) * self.scale)
@@ -21,6 +22,9 @@ class StubServer:
 
     def set_gaze(self, gaze):
         pass
+
+    def set_rotation_miss(self, degrees):
+        self.rotation_misses.append(degrees)
 
     def request_reference(self):
         self.force = True

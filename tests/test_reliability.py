@@ -40,7 +40,7 @@ class _InstantWorker:
     async def start(self, timeout: float) -> int:
         return 0
 
-    async def encode(self, position, quat, t, reference, point=None):
+    async def encode(self, position, quat, t, reference, point=None, rotation_miss_deg=None):
         pose = Pose(position, quat)                  # raises for what a renderer cannot use
         self.frame_id += 1
         payload = FramePayload(Method.ATW, self.frame_id, FrameType.REFERENCE, 0, t, pose.position, pose.quat,

@@ -372,6 +372,16 @@ def test_wide_view_widens_when_frames_come_far_apart(courtyard_renderer):
         camera = Camera.from_array(wide.camera, wide.width, wide.height)
         assert camera.frustum.fovy_deg == pytest.approx(fovy, abs=1e-3), step
         assert (wide.width, wide.height) == (100, 60)
+    # once the session core measured how far the head's rotation strayed from the predicted one, that is the
+    # margin on each side instead (frames 0.5 s apart here), within the same bounds
+    for miss, fovy in ((20.0, s.fovy_deg + 40.0), (2.0, s.wide_fovy_deg), (50.0, s.wide_fovy_max_deg)):
+        server.set_rotation_miss(miss)
+        frame = decode_quad_frame(server.encode(pose, 20.0 + miss).geometry)
+        wide = next(layer for layer in frame.layers if layer.kind == LayerKind.WIDE)
+        assert Camera.from_array(wide.camera, wide.width, wide.height).frustum.fovy_deg == pytest.approx(fovy), miss
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="set_rotation_miss"):
+            server.set_rotation_miss(bad)
     with pytest.raises(ValueError, match="wide_fovy_max_deg"):
         QuasarSettings(wide_fovy_deg=130.0)
     server.close()

@@ -98,6 +98,48 @@ def test_server_aims_each_frame_into_the_time_it_is_shown():
         ServerSessionConfig(hold_share=1.5)
 
 
+def _yaw(deg: float) -> np.ndarray:
+    half = np.radians(deg) / 2
+    return np.array([0.0, np.sin(half), 0.0, np.cos(half)])
+
+
+def _run_yaw(yaw, seconds: float = 2.0, encode_s: float = 0.3) -> tuple[ServerSession, list]:
+    """Poses at 60 Hz along yaw(t) (degrees), an encoder taking `encode_s` a frame; returns the core and its
+    decisions."""
+    s = ServerSession(ServerSessionConfig(downlink_s=0.02, clock_offset_s=0.0))
+    decisions, busy_until = [], None
+    for k in range(int(seconds * 60)):
+        t = k / 60
+        if busy_until is not None and t >= busy_until:
+            d = s.frame_encoded(busy_until, f"f{len(decisions)}", True, encode_s)
+            busy_until = None
+            if d is not None:
+                decisions.append(d)
+                busy_until = d.started + encode_s
+        d = s.pose_received(t, t, np.array([0.0, 1.6, 0.0]), _yaw(yaw(t)))
+        if d is not None:
+            decisions.append(d)
+            busy_until = t + encode_s
+    return s, decisions
+
+
+def test_server_measures_how_far_the_head_strayed_from_its_predictions():
+    """Each frame's predicted rotation is compared with the poses the client sends while the frame is shown; the
+    decisions carry the mean of the last frames' largest angles (None until a frame's hold has passed)."""
+    still, decisions = _run_yaw(lambda t: 10.0)
+    assert decisions[0].rotation_miss_deg is None and still.rotation_miss_deg() == pytest.approx(0.0, abs=1e-6)
+    assert decisions[-1].rotation_miss_deg == pytest.approx(0.0, abs=1e-6)
+    # turning steadily at 60 deg/s: predicted ~0.47 s ahead (encode 0.3 + link 0.02 + half the hold), of which the
+    # damped horizon keeps ~0.24 s (14 deg short), and the head turns another 9 deg either side of the middle of
+    # the 0.3 s it is shown: about 19 deg
+    steady, _ = _run_yaw(lambda t: 60.0 * t)
+    assert 10.0 < steady.rotation_miss_deg() < 30.0
+    # shaking +-30 deg at 1.25 Hz: predictions overshoot at each reversal, and the miss is far larger
+    shaking, decisions = _run_yaw(lambda t: 30.0 * np.sin(2 * np.pi * 1.25 * t))
+    assert shaking.rotation_miss_deg() > steady.rotation_miss_deg() + 5.0
+    assert decisions[-1].rotation_miss_deg is not None and decisions[-1].rotation_miss_deg > 0
+
+
 def test_server_reference_requests_and_refused_frames_make_the_next_frame_self_contained():
     s = ServerSession(ServerSessionConfig(clock_offset_s=0.0, queue_frames=1))
     s.pose_received(0.0, 0.0, *_pose(0.0))
@@ -193,7 +235,7 @@ class _Recording(ServerSession):
     def _start(self, now):
         d = super()._start(now)
         self.log.append(("encode", d.started, d.position.tolist(), d.quat.tolist(), d.display_t, d.reference,
-                         d.point_index))
+                         d.point_index, d.rotation_miss_deg))
         return d
 
     def report_received(self, now, entries):
@@ -257,7 +299,7 @@ class _FakeWorker:
         self.delay, self.stub = delay, StubServer()
         self.died = asyncio.Event()
 
-    async def encode(self, position, quat, t, reference, point=None):
+    async def encode(self, position, quat, t, reference, point=None, rotation_miss_deg=None):
         from quadcast.protocol.frame import encode_frame_payload
         from quadcast.render.camera import Pose
         await asyncio.sleep(self.delay)
@@ -265,6 +307,7 @@ class _FakeWorker:
             self.stub.request_reference()
         if point is not None:
             self.stub.apply_operating_point(point)
+        self.stub.set_rotation_miss(rotation_miss_deg)
         p = self.stub.encode(Pose(position, quat), t)
         return encode_frame_payload(p), p.self_contained
 
