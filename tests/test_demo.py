@@ -2,10 +2,13 @@
 from __future__ import annotations
 
 import json
+import os
+import sys
 
 import pytest
 
-from quadcast.cli.demo import virtual_twin
+from quadcast.cli import build_parser
+from quadcast.cli.demo import CLIENT_NICE, Child, virtual_twin
 
 
 def test_the_demo_replays_its_walk_in_virtual_time(tmp_path):
@@ -23,3 +26,29 @@ def test_the_twin_replays_a_slow_server_at_its_frame_time(tmp_path):
     assert slow["server_frame_ms"] == 250.0 and fast["server_frame_ms"] == 0.0
     assert fast["server_frames"] >= 25
     assert 3 <= slow["server_frames"] <= 5          # one frame started at most every 250 ms over 1 s
+
+
+def _niceness_of(child: Child) -> int:
+    line = child.wait_for(r"^-?\d+$", 30).group(0)
+    child.wait(30)
+    return int(line)
+
+
+def test_a_child_can_run_below_this_process_priority(tmp_path):
+    """The demo's client runs `nice` below the server and link: the child's niceness is ours plus the increment."""
+    ours = os.nice(0)
+    argv = [sys.executable, "-c", "import os; print(os.nice(0))"]
+    assert _niceness_of(Child("same", argv, tmp_path / "same.log")) == ours
+    assert _niceness_of(Child("niced", argv, tmp_path / "niced.log", nice=5)) == min(19, ours + 5)
+    with pytest.raises(ValueError, match="nice must be 0..19, got 20"):
+        Child("bad", argv, nice=20)
+
+
+def test_demo_client_nice_option(capsys):
+    parser = build_parser()
+    assert parser.parse_args(["demo"]).client_nice is None and CLIENT_NICE == 10
+    assert parser.parse_args(["demo", "--client-nice", "0"]).client_nice == 0
+    for bad, why in (("20", "must be 0..19"), ("x", "not an integer")):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["demo", "--client-nice", bad])
+        assert why in capsys.readouterr().err

@@ -173,6 +173,17 @@ def _float_list(text: str, option: str) -> list[float]:
     return values
 
 
+def _client_nice(text: str) -> int:
+    """argparse type of ``demo --client-nice``: an integer 0..19."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if not 0 <= value <= 19:
+        raise argparse.ArgumentTypeError(f"must be 0..19 (a niceness increment), got {value}")
+    return value
+
+
 def _eval_spec(args):
     from quadcast.render.camera import parse_size
     from quadcast.sim.evaluate import EvalSpec
@@ -281,7 +292,9 @@ def _bench_quality(args) -> int:
 def cmd_demo(args) -> int:
     """The live system on the built-in scene: server, link (20±10 ms) and client as three processes on loopback."""
     from quadcast.cli.demo import run_demo
-    return run_demo(Path(args.out), quiet=args.quiet, compare=not args.no_compare)
+    from quadcast.cli.demo import CLIENT_NICE
+    nice = CLIENT_NICE if args.client_nice is None else args.client_nice
+    return run_demo(Path(args.out), quiet=args.quiet, compare=not args.no_compare, client_nice=nice)
 
 
 # -------------------------------------------------------------------------------------------------- main
@@ -405,6 +418,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/demo")
     p.add_argument("--no-compare", action="store_true",
                    help="skip the same walk in virtual time afterwards (its FLIP is what the live run is held to)")
+    p.add_argument("--client-nice", type=_client_nice, default=None, metavar="N",
+                   help="run the client N below the server's and link's priority, 0..19 (default 10: a headset has "
+                        "its own processor; here the client shares the server's cores)")
     p.set_defaults(func=cmd_demo)
 
     from quadcast.cli.live import add_live_commands

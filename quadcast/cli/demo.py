@@ -7,6 +7,7 @@ The tests start their processes the same way.
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -34,11 +35,19 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
     die_with_parent(signal.SIGTERM)
 
 
+def _die_with_parent_niced(increment: int) -> None:  # the same, then lower the child's priority by `increment`
+    die_with_parent(signal.SIGTERM)
+    os.nice(increment)
+
+
 class Child:
-    """A child process whose stdout lines are kept (and optionally echoed) and whose stderr goes to ``log``."""
+    """A child process whose stdout lines are kept (and optionally echoed) and whose stderr goes to ``log``; with
+    ``nice`` > 0 it runs that much below this process's priority (all its threads: set before exec)."""
 
     def __init__(self, name: str, argv: list[str], log: Path | None = None, echo: bool = False,
-                 env: dict | None = None) -> None:
+                 env: dict | None = None, nice: int = 0) -> None:
+        if not 0 <= nice <= 19:
+            raise ValueError(f"Child {name!r}: nice must be 0..19, got {nice}")
         self.name, self.argv, self.echo = name, argv, echo
         self.lines: list[str] = []
         self._cond = threading.Condition()
@@ -47,7 +56,8 @@ class Child:
         full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
         self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self._log, stdin=subprocess.DEVNULL,
                                      text=True, env=full_env,
-                                     preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+                                     preexec_fn=(functools.partial(_die_with_parent_niced, nice) if nice else
+                                                 _die_with_parent) if sys.platform.startswith("linux") else None)
         self._reader = threading.Thread(target=self._read, name=f"{name}-stdout", daemon=True)
         self._reader.start()
 
@@ -120,9 +130,16 @@ class Child:
             self.proc.wait(10)
 
 
+CLIENT_NICE = 10
+"""How far below the server and link the demo's client runs. On a real deployment the headset has a processor of
+its own; here the client shares the server's two cores, and at equal priority its 60 Hz display loop took a third
+of the server's frame rate (README, "Live system")."""
+
+
 def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: float = 10.0,
-             record_every: int = 3, compare: bool = True) -> int:
-    """Start server, link and client; print the client's figures and where the report is. With `compare`, then
+             record_every: int = 3, compare: bool = True, client_nice: int = CLIENT_NICE) -> int:
+    """Start server, link and client (the client `client_nice` below the others' priority); print the client's
+    figures and where the report is. With `compare`, then
     replay the same walk at the same size over the same link model in virtual time (:func:`virtual_twin`) and print
     both FLIPs: what the live system lost to this machine's speed; and once more with the server taking the live
     run's time per received frame: how much of that loss is the server's frame rate."""
@@ -148,7 +165,7 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
                                                "builtin:walk", "--scene", "builtin:courtyard", "--size", size,
                                                "--duration", duration, "--record-every", record_every,
                                                "--label-latency", 20, "--label-jitter", 10, "--out", client_out),
-                       out / "client.log", echo=not quiet)
+                       out / "client.log", echo=not quiet, nice=client_nice)
         children.append(client)
         code = client.wait(timeout=duration + 900)
         if code != 0:
@@ -156,7 +173,7 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
             return 1
         s = json.loads((client_out / "summary.json").read_text())
         print(f"demo: server, link (20±10 ms) and client ran as processes {server.pid}, {link.pid}, {client.pid} "
-              f"on 127.0.0.1 ({time.monotonic() - t0:.0f} s)")
+              f"on 127.0.0.1, the client at nice {client_nice} ({time.monotonic() - t0:.0f} s)")
         print(f"demo: {s['method']} on {s['trace']} in {s['scene']} at {s['size']}, {s['duration_s']:.1f} s live: "
               f"{s['mbps']:.2f} Mbps on the socket (video {s['mbps_video']:.2f}, geometry {s['mbps_geometry']:.2f}), "
               f"{s['server_frames']} frames received = {s['server_frames'] / max(s['duration_s'], 1e-9):.1f} server "
