@@ -12,8 +12,9 @@ So the same events give the same decisions in both (``tests/test_session.py`` ch
 Server side -- events: :meth:`ServerSession.pose_received`, :meth:`~ServerSession.reference_requested`,
 :meth:`~ServerSession.frame_encoded`, :meth:`~ServerSession.frame_sent`, :meth:`~ServerSession.report_received`;
 decisions: :class:`EncodeFrame` (render and encode for this predicted pose and display time, self-contained or
-not, at this operating point, with how far the head strayed from the last frames' predicted rotations) and the frames to send, in order, from :meth:`~ServerSession.next_to_send` (a
-bounded queue that drops stale frames but never breaks a reference chain). With a rate controller
+not, at this operating point, with how far the head strayed from the last frames' predicted rotations) and the
+frames to send, in order, from :meth:`~ServerSession.next_to_send` (a bounded queue that drops stale frames but
+never breaks a reference chain). With a rate controller
 (``ServerSessionConfig.rate``, :mod:`quadcast.protocol.rate`) the session also picks each frame's operating point
 from the client's receive reports and holds new frames back while the link is backed up.
 
@@ -45,10 +46,10 @@ ENCODE_EMA = 0.2
 """Weight of the newest encode time in the server's running estimate."""
 
 POSE_INTERVAL_EMA = 0.2
+"""Weight of the newest pose interval in the server's running estimate (the frame rate the controller plans for)."""
 
 MISS_FRAMES = 8
 """How many of the last frames' rotation misses :meth:`ServerSession.rotation_miss_deg` averages."""
-"""Weight of the newest pose interval in the server's running estimate (the frame rate the controller plans for)."""
 
 
 # ------------------------------------------------------------------------------------------------- queue
@@ -398,8 +399,9 @@ class ServerSession:
         display_t = float(np.clip(display_t, -MAX_TIME_S, MAX_TIME_S))
         quat = np.asarray(quat, np.float64)
         # shown from its arrival until the next frame's, about one interval: the hold the miss is measured over
-        arrival = display_t - cfg.hold_share * self.display_interval_s()
-        self._aims.append([arrival, arrival + self.display_interval_s(), quat / np.linalg.norm(quat), 0.0])
+        hold = self.display_interval_s()
+        arrival = display_t - cfg.hold_share * hold
+        self._aims.append([arrival, arrival + hold, quat / np.linalg.norm(quat), 0.0])
         return EncodeFrame(position, quat, display_t, reference, float(now), point, index, self.rotation_miss_deg())
 
 

@@ -43,8 +43,8 @@ from quadcast.sim.report import FrameImages, format_figure, write_frames_csv, wr
 WALLCLOCK_KEYS = ("server_ms", "client_ms")
 WORST_FRAMES = 3
 FOVEA_RADIUS_DEG = 10.0
-MAX_SERVER_FRAME_MS = 10_000.0   # --server-frame-ms: a server slower than a frame in 10 s replays nothing useful
 """`flip_fovea` is FLIP over the pixels within this many degrees of the gaze point (the central 20 degrees)."""
+MAX_SERVER_FRAME_MS = 10_000.0   # --server-frame-ms: a server slower than a frame in 10 s replays nothing useful
 
 
 @dataclass

@@ -333,7 +333,8 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
                                   server_delay_ms=server_delay_ms, reference_timeout_s=0.2,
                                   rate_mbit=0.3 if adapt else None,
                                   rate=RateConfig(LADDER, start_mbps=1.0) if adapt else None)
-    replay_mod.replay(resolve_trace("builtin:walk"), StubServer(), StubClient(), cfg, 180)
+    replay_server = StubServer()
+    replay_mod.replay(resolve_trace("builtin:walk"), replay_server, StubClient(), cfg, 180)
     replayed = sessions[0].log
     assert sum(1 for e in replayed if e[0] == "encode") > 40
     if adapt:
@@ -351,9 +352,12 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
     live_sessions = []
     monkeypatch.setattr(app, "ServerSession", lambda c: live_sessions.append(_Recording(c)) or live_sessions[-1])
 
+    workers = []
+
     class _Session(app.Session):
         async def _start_worker(self, hello):
             self.worker = _FakeWorker(server_delay_ms / 1e3)
+            workers.append(self.worker)
 
     server = types.SimpleNamespace(
         config=types.SimpleNamespace(handshake_timeout=1e9, idle_timeout=1e9, max_sessions=1, methods=("quasar",),
@@ -395,3 +399,6 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
     live = [e for e in live_sessions[0].log if e[1] <= end]
     assert events and live == replayed
     assert [e for e in live_sessions[0].sent if e[0] <= end] == sessions[0].sent
+    # both drivers hand each decision's rotation miss to the method server before it encodes
+    misses = replay_server.rotation_misses
+    assert any(m is not None for m in misses) and workers[0].stub.rotation_misses[:len(misses)] == misses

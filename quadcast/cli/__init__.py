@@ -291,8 +291,7 @@ def _bench_quality(args) -> int:
 
 def cmd_demo(args) -> int:
     """The live system on the built-in scene: server, link (20±10 ms) and client as three processes on loopback."""
-    from quadcast.cli.demo import run_demo
-    from quadcast.cli.demo import CLIENT_NICE
+    from quadcast.cli.demo import CLIENT_NICE, run_demo
     nice = CLIENT_NICE if args.client_nice is None else args.client_nice
     return run_demo(Path(args.out), quiet=args.quiet, compare=not args.no_compare, client_nice=nice)
 
