@@ -13,7 +13,11 @@ from quadcast.render.gl import RENDER_DIR, compute, program, set_uniforms
 from quadcast.render.renderer import GBuffer, DeferredRenderer, read_texture
 
 HERE = Path(__file__).resolve().parent
-MAX_DEPTH_LEVELS = 8   # levels of LayerRenderer.visible_max (the size of server/peel.frag.glsl's u_max_levels)
+MAX_DEPTH_LEVELS = 8   # levels of LayerRenderer.visible_max (the size of peel_visibility.glsl's u_max_levels)
+LIST_FRAGMENT_BYTES = 64              # server/peel_list_buffers.glsl's PeelFragment
+INITIAL_LIST_FRAGMENTS_PER_PIXEL = 2  # the one-pass peel's first room, grown by doubling as frames need
+MAX_LIST_FRAGMENTS_PER_PIXEL = 16     # its most (a mean over the hidden layers' pixels): beyond, a pass a layer
+MAX_LIST_BYTES = 256 << 20            # and at most this much memory
 
 
 def wide_camera(camera: Camera, fovy_deg: float = 120.0, scale: float = 0.5) -> Camera:
@@ -33,7 +37,7 @@ class LayerRenderer:
 
     The hidden layers are rendered -- peeled, lit and later turned into quads -- at `hidden_size`, the size their
     colour has in the video atlas (QUASAR sends them at reduced resolution), not at the visible layer's: peeling is
-    the server's most expensive pass (three draws of the scene). They peel from the visible layer's
+    the server's most expensive pass (a draw of the scene, see `one_pass`). They peel from the visible layer's
     view positions reduced to that size (the nearest sample of each block, server/downsample.frag.glsl), not from a
     second render of it: on llvmpipe a geometry pass costs its triangles at any size."""
 
@@ -73,6 +77,19 @@ class LayerRenderer:
                            for level0 in (1, 0)}
         self.peel = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl",
                             MAX_DEPTH_LEVELS=MAX_DEPTH_LEVELS)
+        # The hidden layers from one draw of the scene (server/peel_list.frag.glsl stores every potentially visible
+        # fragment behind the visible layer in per-pixel lists, server/peel_resolve.frag.glsl takes the layers from
+        # them) instead of a draw per layer; False: a peel pass per layer. The same layers either way.
+        self.one_pass = True
+        self._peel_list = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel_list.frag.glsl",
+                                  MAX_DEPTH_LEVELS=MAX_DEPTH_LEVELS)
+        self._peel_resolve = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "peel_resolve.frag.glsl")
+        self._peel_resolve_vao = self.ctx.vertex_array(self._peel_resolve, [])
+        self._list_depth = self.ctx.depth_texture((hw, hh))    # the cull step's (see _depth_step)
+        self._list_heads = self.ctx.buffer(reserve=4 * (1 + hw * hh))
+        self._list_fragments: moderngl.Buffer | None = None
+        self.list_capacity = 0               # fragments the lists hold now (grown as frames need)
+        self.last_list_fragments = 0         # fragments the last one-pass peel stored
         self._peel_cull = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "peel_cull.frag.glsl")
         self._peel_cull_vao = self.ctx.vertex_array(self._peel_cull, [])
         self._peel_cull_fbos: dict[int, moderngl.Framebuffer] = {}
@@ -90,6 +107,77 @@ class LayerRenderer:
         set_uniforms(self._peel_cull, u_position=0, u_restore=restore, u_z=0.0)
         self._peel_cull_vao.render(moderngl.TRIANGLES, vertices=3)
         self.ctx.depth_func = "<"
+
+    def _peel_uniforms(self, prog: moderngl.Program, focal_px: float, max_level: int, max_radius_px: int,
+                       viewcell_radius: float, connectivity: float) -> None:
+        """The uniforms of server/peel_visibility.glsl (the visible layer's positions on unit 5, its farthest
+        depths on 6)."""
+        set_uniforms(prog, u_visible_position=5, u_visible_max=6, u_max_level=max_level,
+                     u_max_levels=self._depth_levels.tobytes(), u_focal_px=focal_px,
+                     u_viewcell_radius=float(viewcell_radius), u_connectivity=float(connectivity),
+                     u_max_radius_px=max_radius_px)
+
+    def _peel_in_one_pass(self, small: Camera, t: float, visible_position: moderngl.Texture,
+                          connectivity: float) -> bool:
+        """The hidden layers into `self.hidden` from one draw of the scene (see `one_pass`; the peel uniforms
+        already set). Returns False, leaving them to the layer-by-layer passes, where the potentially visible
+        fragments behind the visible layer outnumber what the lists may hold (MAX_LIST_FRAGMENTS_PER_PIXEL a pixel,
+        MAX_LIST_BYTES in all)."""
+        ctx, (hw, hh) = self.ctx, self.hidden_size
+        for _ in range(2):
+            self._list_heads.clear()       # no fragment stored, every list empty
+            if self._list_fragments is None:
+                self._grow_list(INITIAL_LIST_FRAGMENTS_PER_PIXEL * hw * hh)
+            self._list_heads.bind_to_storage_buffer(0)
+            self._list_fragments.bind_to_storage_buffer(1)
+            self._depth_step(self._list_depth, visible_position, restore=False)
+            fbo = self._peel_cull_fbos[self._list_depth.glo]
+            fbo.depth_mask = False         # the test only: a fragment behind another is stored too
+            fbo.use()
+            ctx.enable(moderngl.DEPTH_TEST)
+            ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
+            set_uniforms(self._peel_list, u_capacity=self.list_capacity, u_list_width=hw)
+            self.renderer.draw_geometry(small, t, self._peel_list, closed_back_faces=not self.skip_closed_back_faces)
+            fbo.depth_mask = True
+            ctx.memory_barrier()
+            stored = int(np.frombuffer(self._list_heads.read(4), np.uint32)[0])
+            self.last_list_fragments = stored
+            if stored <= self.list_capacity:
+                break
+            if stored > self._max_list_fragments():
+                return False
+            self._grow_list(stored)
+        else:
+            return False
+        set_uniforms(self._peel_resolve, u_prev_position=4, u_connectivity=float(connectivity), u_list_width=hw)
+        prev_position = visible_position
+        for gb in self.hidden:
+            gb.geometry_fbo.use()
+            gb.clear()
+            ctx.enable(moderngl.DEPTH_TEST)
+            ctx.depth_func = "1"           # always: every pixel resolved takes its fragment's depth
+            prev_position.use(4)
+            self._peel_resolve_vao.render(moderngl.TRIANGLES, vertices=3)
+            ctx.depth_func = "<"
+            gb.camera = small
+            prev_position = gb.position
+        return True
+
+    def _max_list_fragments(self) -> int:
+        hw, hh = self.hidden_size
+        return int(min(MAX_LIST_FRAGMENTS_PER_PIXEL * hw * hh, MAX_LIST_BYTES // LIST_FRAGMENT_BYTES))
+
+    def _grow_list(self, fragments: int) -> None:
+        """Room for at least `fragments` in the one-pass peel's lists (doubling, within the per-pixel limit)."""
+        hw, hh = self.hidden_size
+        capacity = max(self.list_capacity, 1)
+        while capacity < fragments:
+            capacity *= 2
+        capacity = min(capacity, self._max_list_fragments())
+        if self._list_fragments is not None:
+            self._list_fragments.release()
+        self._list_fragments = self.ctx.buffer(reserve=LIST_FRAGMENT_BYTES * capacity)
+        self.list_capacity = capacity
 
     def _build_visible_max(self, position: moderngl.Texture, max_level: int) -> None:
         """Levels 0..max_level of `visible_max` from the visible layer's view positions at the hidden size."""
@@ -150,14 +238,21 @@ class LayerRenderer:
             max_level = -1
         self._build_visible_max(visible_position, max_level)
         self.visible_max_levels = max_level + 1
+        visible_position.use(5)
+        self.visible_max.use(6)
+        if self.one_pass:
+            self._peel_uniforms(self._peel_list, focal_px, max_level, max_radius_px, viewcell_radius, connectivity)
+            if self._peel_in_one_pass(small, t, visible_position, connectivity):
+                for gb in self.hidden:
+                    r.lighting_pass(gb, t, geometry_only=True)
+                    layers.append(gb)
+                return layers
         for gb in self.hidden:
             prev_position.use(4)
             visible_position.use(5)
             self.visible_max.use(6)
-            set_uniforms(self.peel, u_prev_position=4, u_visible_position=5, u_visible_max=6, u_max_level=max_level,
-                         u_max_levels=self._depth_levels.tobytes(),
-                         u_focal_px=focal_px, u_viewcell_radius=float(viewcell_radius),
-                         u_connectivity=float(connectivity), u_max_radius_px=max_radius_px)
+            set_uniforms(self.peel, u_prev_position=4)
+            self._peel_uniforms(self.peel, focal_px, max_level, max_radius_px, viewcell_radius, connectivity)
             r.geometry_pass(small, t, target=gb, prog=self.peel, cull=self._cull_where_empty(prev_position),
                             closed_back_faces=not self.skip_closed_back_faces)
             self._depth_step(gb.depth, gb.position, restore=True)

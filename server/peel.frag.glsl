@@ -1,26 +1,11 @@
 #version 430
-// Effective Depth Peeling (QUASAR 3.3, after Kim & Lee 2023): the next hidden layer keeps, per pixel, the
-// nearest fragment behind the previous layer that could become visible from somewhere inside the view sphere.
-// A fragment at depth z behind the visible surface at depth z0 shifts against it by up to
-// f * r * (1/z0 - 1/z) pixels when the eye moves by r; it is potentially visible if, within that radius, the
-// visible layer is farther than the fragment (an edge it can appear from behind).
+// Effective Depth Peeling, one layer a pass: the next hidden layer keeps, per pixel, the nearest fragment behind
+// the previous layer that could become visible from somewhere inside the view sphere (peel_visibility.glsl).
 #include "material.glsl"
 #include "camera.glsl"
+#include "peel_visibility.glsl"
 
 uniform sampler2D u_prev_position;     // previous layer's view positions (w > 0 where geometry)
-uniform sampler2D u_visible_position;  // the visible layer's
-uniform sampler2D u_visible_max;       // its farthest depth over blocks, levels side by side (peel_depth_max.comp)
-uniform ivec4 u_max_levels[MAX_DEPTH_LEVELS];   // per level: x offset in u_visible_max, width, height
-uniform int u_max_level;               // the last level built (-1: no early reject)
-uniform float u_focal_px;              // pixels per unit of x/z
-uniform float u_viewcell_radius;       // metres
-uniform float u_connectivity;          // relative depth gap that still counts as the same surface
-uniform int u_max_radius_px;
-
-float visible_depth(ivec2 p) {
-    vec4 v = texelFetch(u_visible_position, clamp(p, ivec2(0), textureSize(u_visible_position, 0) - 1), 0);
-    return is_sky(v) ? SKY_DEPTH : -v.z;
-}
 
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
@@ -28,36 +13,6 @@ void main() {
     vec4 prev = texelFetch(u_prev_position, px, 0);
     if (is_sky(prev)) discard;                               // nothing in front: nothing hidden here
     if (z <= -prev.z * (1.0 + u_connectivity)) discard;      // already peeled, or the same surface
-    float z0 = visible_depth(px);
-    float radius = u_focal_px * u_viewcell_radius * (1.0 / min(z0, z) - 1.0 / z);
-    radius = min(radius, float(u_max_radius_px));
-    if (radius < 0.5) discard;
-    // Early reject: every ring sample below lies in the square px +- reach (clamped to the image), which the
-    // coarsest level needed covers with at most 2 x 2 texels; if the visible layer is nearer than the threshold
-    // everywhere in it, no sample can pass. The same fragments survive as without it, for fewer fetches.
-    int reach = int(radius + 1.0);
-    int level = findMSB(2 * reach) + 1;                   // 2^level > 2 * reach
-    if (level <= u_max_level) {
-        // (one texture at lod 0: llvmpipe takes an explicit lod per 2 x 2 quad, not per fragment)
-        int x0 = u_max_levels[level].x;
-        ivec2 top = u_max_levels[0].yz - 1;
-        ivec2 a = clamp(px - reach, ivec2(0), top) >> level;
-        ivec2 b = clamp(px + reach, ivec2(0), top) >> level;
-        float farthest = max(max(texelFetch(u_visible_max, ivec2(x0 + a.x, a.y), 0).r,
-                                 texelFetch(u_visible_max, ivec2(x0 + b.x, a.y), 0).r),
-                             max(texelFetch(u_visible_max, ivec2(x0 + a.x, b.y), 0).r,
-                                 texelFetch(u_visible_max, ivec2(x0 + b.x, b.y), 0).r));
-        if (farthest < z * (1.0 - u_connectivity)) discard;
-    }
-    bool potentially_visible = false;
-    for (int ring = 1; ring <= 3 && !potentially_visible; ++ring) {
-        float rr = radius * float(ring) / 3.0;
-        for (int k = 0; k < 8; ++k) {
-            float a = 0.7853982 * float(k) + 0.3926991 * float(ring & 1);
-            ivec2 q = px + ivec2(round(rr * vec2(cos(a), sin(a))));
-            if (visible_depth(q) >= z * (1.0 - u_connectivity)) { potentially_visible = true; break; }
-        }
-    }
-    if (!potentially_visible) discard;
+    if (!potentially_visible(px, z)) discard;
     write_gbuffer();
 }

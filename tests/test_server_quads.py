@@ -73,8 +73,10 @@ def test_peel_passes_skip_pixels_where_the_previous_layer_is_empty_without_chang
     cam = Camera.perspective(Pose.look_at([0, 1.6, 6], [0, 2.5, 0]), 96, 54)
     def layers(renderer):
         return [(gb.read_depth(), gb.read_color(), gb.read_depth_buffer()) for gb in renderer.render(cam, 0.0, 0.5)]
-    culled = layers(LayerRenderer(courtyard_renderer, 96, 54, 4, (48, 27)))
+    culled = LayerRenderer(courtyard_renderer, 96, 54, 4, (48, 27))
     plain = LayerRenderer(courtyard_renderer, 96, 54, 4, (48, 27))
+    culled.one_pass = plain.one_pass = False
+    culled = layers(culled)
     monkeypatch.setattr(plain, "_depth_step", lambda *args, **kwargs: None)
     full = layers(plain)
     for a, b in zip(culled, full):                 # depth, lit colour (black where empty) and the depth buffer
@@ -152,6 +154,43 @@ def test_peel_early_reject_keeps_the_layers_of_the_full_search(ctx, courtyard_re
         padded[:54, :96] = small[::-1]                     # bottom row first
         want_level = padded.reshape(h, block, w, block).max(axis=(1, 3))[::-1]
         np.testing.assert_array_equal(fast.read_visible_max(level), want_level)
+
+
+def _layer_images(layers, cam):
+    return [(gb.read_depth(), gb.read_color(), gb.read_normal(), gb.read_depth_buffer(), gb.read_object_id())
+            for gb in layers.render(cam, 0.0, 0.5)]
+
+
+def test_one_pass_peel_gives_the_layers_of_a_pass_a_layer(ctx, courtyard_renderer, monkeypatch):
+    """The hidden layers taken from one draw's per-pixel lists of potentially visible fragments are those the
+    layer-by-layer peel passes give, texel for texel (depth, lit colour, normal, depth buffer, object id); also when
+    the lists first lack room (they grow and the draw runs again) and when they may not grow enough (the passes a
+    layer take over)."""
+    import quadcast.server.layers as layers_module
+    from quadcast.server.layers import LayerRenderer
+    cam = Camera.perspective(Pose.look_at([1.5, 1.6, 5], [-1, 1.5, 0]), 192, 108)
+    per_layer = LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54))
+    per_layer.one_pass = False
+    want = _layer_images(per_layer, cam)
+    assert np.isfinite(want[1][0]).mean() > 0.02 and np.isfinite(want[3][0]).any()   # three layers hold surfaces
+
+    def check(layers):
+        got = _layer_images(layers, cam)
+        for a, b in zip(got, want):
+            assert all(np.array_equal(x, y) for x, y in zip(a, b))
+
+    one = LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54))
+    check(one)
+    stored = one.last_list_fragments
+    assert stored >= np.isfinite(want[1][0]).sum() and one.list_capacity >= stored
+    monkeypatch.setattr(layers_module, "INITIAL_LIST_FRAGMENTS_PER_PIXEL", stored / (96 * 54) / 8)
+    grown = LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54))
+    check(grown)
+    assert grown.last_list_fragments == stored and stored <= grown.list_capacity < 2 * stored
+    monkeypatch.setattr(layers_module, "MAX_LIST_FRAGMENTS_PER_PIXEL", stored / (96 * 54) / 2)
+    limited = LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54))
+    check(limited)
+    assert limited.list_capacity < stored <= limited.last_list_fragments
 
 
 def test_grow_mask_is_a_one_pixel_binary_dilation():
