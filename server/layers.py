@@ -79,7 +79,8 @@ class LayerRenderer:
                             MAX_DEPTH_LEVELS=MAX_DEPTH_LEVELS)
         # The hidden layers from one draw of the scene (server/peel_list.frag.glsl stores every potentially visible
         # fragment behind the visible layer in per-pixel lists, server/peel_resolve.frag.glsl takes the layers from
-        # them) instead of a draw per layer; False: a peel pass per layer. The same layers either way.
+        # them) instead of a draw per layer; False: a peel pass per layer. The same layers either way (on a GPU,
+        # which may store a pixel's fragments out of drawing order, up to which of two at exactly one depth is kept).
         self.one_pass = True
         self._peel_list = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel_list.frag.glsl",
                                   MAX_DEPTH_LEVELS=MAX_DEPTH_LEVELS)

@@ -1,8 +1,9 @@
 #version 430
 // One hidden layer of the one-pass peel from the per-pixel lists peel_list.frag.glsl stored, as a layer-by-layer
-// pass (peel.frag.glsl) would peel it: the nearest stored fragment (by window depth; of equal ones the earliest
-// stored, as a "<" depth test keeps the first drawn) behind the previous layer by more than the connectivity gap.
-// Writes the G-buffer's outputs and its depth; discards where the layer is empty.
+// pass (peel.frag.glsl) would peel it: the nearest stored fragment (by window depth) behind the previous layer by
+// more than the connectivity gap. Of fragments at exactly the same depth it keeps the earliest stored: llvmpipe
+// shades a pixel's fragments in the order they are drawn, so that is the one a "<" depth test keeps; a GPU may
+// store them in another order. Writes the G-buffer's outputs and its depth; discards where the layer is empty.
 #include "camera.glsl"
 #include "peel_list_buffers.glsl"
 
