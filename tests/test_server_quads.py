@@ -10,7 +10,7 @@ from quadcast.protocol.frame import decode_frame_payload
 from quadcast.protocol.quads import LayerKind, decode_quad_frame
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
-from quadcast.render.renderer import DeferredRenderer
+from quadcast.render.renderer import DeferredRenderer, GBuffer, read_texture
 from quadcast.render.scene import scene_from_dict
 from quadcast.server.quads import QUAD_FLOATS, QuadGenerator, QuadParams, gathered_to_quadset, tile_levels
 from quadcast.server.quasar import QuasarServer, QuasarSettings
@@ -50,7 +50,6 @@ def test_quads_reconstruct_the_view_they_came_from(ctx, courtyard_renderer):
 def test_peeling_starts_from_the_nearest_visible_sample_of_each_block(ctx, courtyard_renderer):
     """The hidden layers peel behind the visible layer's positions reduced to their size: per block of the
     full-size layer, the nearest sample (not a second render at the small size)."""
-    from quadcast.render.renderer import read_texture
     from quadcast.server.layers import LayerRenderer
     cam = Camera.perspective(Pose.look_at([0, 1.6, 6], [0, 2.5, 0]), 64, 36)
     layers = LayerRenderer(courtyard_renderer, 64, 36, 2, (32, 18))
@@ -191,6 +190,29 @@ def test_one_pass_peel_gives_the_layers_of_a_pass_a_layer(ctx, courtyard_rendere
     limited = LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54))
     check(limited)
     assert limited.list_capacity < stored <= limited.last_list_fragments
+
+
+def test_atlas_copies_layers_of_its_rects_size_as_the_drawing_pass_draws_them(ctx, courtyard_renderer):
+    """AtlasComposer copies a layer whose colour has its rect's size (glCopyImageSubData) and draws the others
+    scaled: the atlas is the one the drawing pass makes for every layer."""
+    from quadcast.server.layers import AtlasComposer, AtlasLayout
+    layout = AtlasLayout.for_view(96, 54, 2, (60, 34))
+    views = [Camera.perspective(Pose.look_at([0, 1.6, 6], [x, 1.5, 0]), w, h)
+             for x, (w, h) in zip((0, 1, 2, 3), ((96, 54), (96, 54), (48, 27), (64, 36)))]
+    colors = [courtyard_renderer.gbuffer(cam, 0.0, target=GBuffer(ctx, cam.width, cam.height)).color for cam in views]
+    rects = [layout.reference, layout.current, layout.hidden[0], layout.hidden[1]]   # the last one scaled down
+    atlases = []
+    for copy in (True, False):
+        atlas = AtlasComposer(ctx, layout)
+        atlas._copy = copy
+        atlas.clear()
+        for color, rect in zip(colors, rects):
+            atlas.draw(color, rect)
+        atlases.append(atlas.read())
+    assert np.array_equal(atlases[0], atlases[1])
+    x, y, w, h = layout.current
+    assert np.array_equal(atlases[0][y:y + h, x:x + w, :3], read_texture(colors[1], 4, "u1")[..., :3])
+    assert atlases[0][..., :3].std() > 10                  # pictures, not a cleared atlas
 
 
 def test_grow_mask_is_a_one_pixel_binary_dilation():
