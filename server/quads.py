@@ -144,6 +144,8 @@ class QuadGenerator:
         # every level's tile list, then the ring around level 0's (the plane pass's extra tiles)
         tw, th = self.tile_grids[0]
         self.tiles = ctx.buffer(reserve=4 * (sum(w * h for w, h in self.tile_grids) + tw * th))
+        self.pixels = ctx.buffer(reserve=4 * width * height)   # the plane and create passes' pixels under a mask
+        self.use_pixel_list = True     # False: they run on whole tiles under a mask too (listed_pixels)
         self.pixel_planes = ctx.texture((width, height), 4, dtype="f4")   # quad_planes.comp's, copied from
         self.pixel_planes_buffer = ctx.buffer(reserve=width * height * 16)  # ... the buffer it writes
         self.pixel_planes.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -195,6 +197,20 @@ class QuadGenerator:
             active &= ~self._inside_tiles(camera, inner)
         return tile_levels(active, self.levels)
 
+    def listed_pixels(self, mask: np.ndarray, codes: np.ndarray) -> np.ndarray | None:
+        """The (y << 16) | x of `mask`'s pixels in the level-0 tiles `codes`, row by row: what the plane and create
+        passes run on under a mask (the other pixels of those tiles get no quad; on llvmpipe a tile's masked-out
+        pixels cost as much as its kept ones). None where they are half the tiles' pixels or more: the tiles
+        themselves cost no more then."""
+        tw, th = self.tile_grids[0]
+        active = np.zeros((th, tw), bool)
+        active[codes >> 16, codes & 0xFFFF] = True
+        ys, xs = np.nonzero(mask)
+        keep = active[ys // TILE, xs // TILE]
+        if 2 * int(keep.sum()) >= len(codes) * TILE * TILE:
+            return None
+        return (ys[keep].astype(np.uint32) << np.uint32(16)) | xs[keep].astype(np.uint32)
+
     def _inside_tiles(self, camera: Camera, inner: Camera) -> np.ndarray:
         """(th, tw) bools: tiles whose every pixel centre is a pixel or more inside `inner`'s frustum (as the
         create pass tests it, 2% in from its edges), so no pixel of theirs gets a quad."""
@@ -220,6 +236,14 @@ class QuadGenerator:
         set_uniforms(prog, u_tile_base=base, u_tile_count=count, u_tile_stride=gx)
         prog.run(gx, -(-count // gx))
 
+    def _run_pixels(self, prog, count: int) -> None:
+        """Dispatch `prog` on the first `count` pixels of `self.pixels`, TILE * TILE a workgroup."""
+        self.pixels.bind_to_storage_buffer(8)
+        groups = -(-count // (TILE * TILE))
+        gx = min(groups, MAX_GROUPS_X)
+        set_uniforms(prog, u_pixel_count=count, u_tile_stride=gx)
+        prog.run(gx, -(-groups // gx))
+
     def _camera_uniforms(self, prog, camera: Camera) -> None:
         f = camera.frustum
         set_uniforms(prog, u_frustum=(f.left, f.right, f.bottom, f.top), u_near=f.near, u_far=f.far,
@@ -243,8 +267,10 @@ class QuadGenerator:
         bases = np.concatenate([[0], np.cumsum([len(t) for t in tiles])]).astype(int)
         if len(tiles[0]):
             self.tiles.write(np.concatenate(tiles + [ring]).astype(np.uint32).tobytes())
-        if len(tiles[0]) < self.tile_grids[0][0] * self.tile_grids[0][1]:
-            for buf in self.planes:       # entries outside the tiles are empty: the passes do not visit them
+        listed = (self.listed_pixels(mask, tiles[0])
+                  if mask is not None and inner is None and self.use_pixel_list and len(tiles[0]) else None)
+        if listed is not None or len(tiles[0]) < self.tile_grids[0][0] * self.tile_grids[0][1]:
+            for buf in self.planes:       # entries the passes do not visit are empty
                 buf.clear()
         self.tiles.bind_to_storage_buffer(5)
         position.use(0)
@@ -254,12 +280,25 @@ class QuadGenerator:
                      u_sky_distance=camera.frustum.far * 0.9 if params.sky else 0.0,
                      u_max_depth=params.max_depth if params.max_depth > 0 else 3.0e38)
         self.pixel_planes.use(3)
-        if len(tiles[0]):
+        if listed is not None:
+            # pixel planes of the listed pixels, the others empty: a listed pixel's neighbours that get a quad
+            # are listed too
+            self.pixel_planes_buffer.clear()
+            if len(listed):
+                self.pixels.write(listed.tobytes())
+                prog = self.plane_pass
+                self.pixel_planes_buffer.bind_to_storage_buffer(7)
+                self._camera_uniforms(prog, camera)
+                set_uniforms(prog, **pixel)
+                self._run_pixels(prog, len(listed))
+            ctx.memory_barrier()
+            self.pixel_planes.write(self.pixel_planes_buffer)
+        elif len(tiles[0]):
             # pixel planes on the create pass's tiles and the ring around them: all a create invocation reads
             prog = self.plane_pass
             self.pixel_planes_buffer.bind_to_storage_buffer(7)
             self._camera_uniforms(prog, camera)
-            set_uniforms(prog, **pixel)
+            set_uniforms(prog, u_pixel_count=0, **pixel)
             self._run_tiles(prog, bases[0], len(tiles[0]))
             if len(ring):
                 self._run_tiles(prog, bases[-1], len(ring))
@@ -275,7 +314,11 @@ class QuadGenerator:
                      u_delta_max=params.delta_max, **pixel)
         self.planes[0].bind_to_storage_buffer(0)
         self.offsets[0].bind_to_storage_buffer(1)
-        if len(tiles[0]):
+        if listed is not None:
+            if len(listed):
+                self._run_pixels(prog, len(listed))
+        elif len(tiles[0]):
+            set_uniforms(prog, u_pixel_count=0)
             self._run_tiles(prog, bases[0], len(tiles[0]))
         ctx.memory_barrier()
         ctx.finish()

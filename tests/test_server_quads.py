@@ -284,6 +284,31 @@ def test_tile_lists_give_the_quads_of_the_whole_grid(ctx, courtyard_renderer, mo
     assert _same_quads(outer, outer_all)
 
 
+def test_sparse_mask_runs_on_its_pixels_with_the_quads_of_its_tiles(ctx, courtyard_renderer):
+    """Under a sparse mask the plane and create passes run on the masked pixels (QuadGenerator.listed_pixels), not
+    on their whole tiles: the same quads, also after an unmasked frame left planes everywhere; a dense mask keeps
+    the tiles."""
+    cam = Camera.perspective(Pose.look_at([1.5, 1.6, 5], [-1, 1.5, 0]), 192, 108)
+    gb = courtyard_renderer.gbuffer(cam, 0.0)
+    rng = np.random.default_rng(11)
+    mask = np.zeros((108, 192), bool)
+    mask[rng.integers(0, 108, 300), rng.integers(0, 192, 300)] = True
+    mask[40:42, 20:170] = True                                     # a thin sliver, as revealed pixels are
+    mask[60:90, 100:104] = True
+    params = QuadParams()
+    listed, tiled = QuadGenerator(ctx, 192, 108), QuadGenerator(ctx, 192, 108)
+    tiled.use_pixel_list = False
+    listed.generate(gb.position, gb.normal, cam, params)           # planes and Quad Maps of a whole frame first
+    pixels = listed.listed_pixels(mask, listed.active_tiles(cam, mask)[0])
+    assert pixels is not None and len(pixels) == mask.sum()
+    got, _ = listed.generate(gb.position, gb.normal, cam, params, mask=mask)
+    want, _ = tiled.generate(gb.position, gb.normal, cam, params, mask=mask)
+    assert len(want) > 100 and _same_quads(got, want)
+    dense = np.zeros((108, 192), bool)
+    dense[8:64, 16:80] = True
+    assert listed.listed_pixels(dense, listed.active_tiles(cam, dense)[0]) is None
+
+
 @pytest.fixture(scope="module")
 def moving_box_scene():
     return scene_from_dict({"models": [
