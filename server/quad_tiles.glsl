@@ -6,9 +6,10 @@ uniform int u_tile_base;     // this map's first entry in `tiles`
 uniform int u_tile_count;
 uniform int u_tile_stride;   // workgroups per row of the dispatch
 
-// Or, where u_pixel_count > 0, one invocation per listed pixel ((y << 16) | x), 64 a workgroup: the plane and
-// create passes under a sparse mask, where a listed tile's masked-out pixels would cost as much as its kept ones.
+// Or, where u_pixel_count > 0, one invocation per listed entry ((y << 16) | x), 64 a workgroup: the passes under
+// a sparse mask, where a listed tile's masked-out entries would cost as much as its kept ones.
 layout(std430, binding = 8) readonly buffer Pixels { uint listed_pixels[]; };
+uniform int u_pixel_base;    // this map's first entry in `listed_pixels`
 uniform int u_pixel_count;
 
 // The map entry this invocation handles; (-1, -1) past the end of the list.
@@ -16,7 +17,7 @@ ivec2 tile_invocation() {
     if (u_pixel_count > 0) {
         int k = (int(gl_WorkGroupID.y) * u_tile_stride + int(gl_WorkGroupID.x)) * 64 + int(gl_LocalInvocationIndex);
         if (k >= u_pixel_count) return ivec2(-1);
-        uint c = listed_pixels[k];
+        uint c = listed_pixels[u_pixel_base + k];
         return ivec2(int(c & 0xffffu), int(c >> 16));
     }
     int i = int(gl_WorkGroupID.y) * u_tile_stride + int(gl_WorkGroupID.x);

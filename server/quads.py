@@ -144,8 +144,9 @@ class QuadGenerator:
         # every level's tile list, then the ring around level 0's (the plane pass's extra tiles)
         tw, th = self.tile_grids[0]
         self.tiles = ctx.buffer(reserve=4 * (sum(w * h for w, h in self.tile_grids) + tw * th))
-        self.pixels = ctx.buffer(reserve=4 * width * height)   # the plane and create passes' pixels under a mask
-        self.use_pixel_list = True     # False: they run on whole tiles under a mask too (listed_pixels)
+        # under a sparse mask the passes' entries, level by level (listed_pixels, then their parents)
+        self.pixels = ctx.buffer(reserve=4 * width * height)
+        self.use_pixel_list = True     # False: the passes run on whole tiles under a mask too
         self.pixel_planes = ctx.texture((width, height), 4, dtype="f4")   # quad_planes.comp's, copied from
         self.pixel_planes_buffer = ctx.buffer(reserve=width * height * 16)  # ... the buffer it writes
         self.pixel_planes.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -199,9 +200,9 @@ class QuadGenerator:
 
     def listed_pixels(self, mask: np.ndarray, codes: np.ndarray) -> np.ndarray | None:
         """The (y << 16) | x of `mask`'s pixels in the level-0 tiles `codes`, row by row: what the plane and create
-        passes run on under a mask (the other pixels of those tiles get no quad; on llvmpipe a tile's masked-out
-        pixels cost as much as its kept ones). None where they are half the tiles' pixels or more: the tiles
-        themselves cost no more then."""
+        passes run on under a mask, and the merge passes on the entries above them (the other pixels of those
+        tiles get no quad; on llvmpipe a tile's masked-out pixels cost as much as its kept ones). None where they
+        are half the tiles' pixels or more: the tiles themselves cost no more then."""
         tw, th = self.tile_grids[0]
         active = np.zeros((th, tw), bool)
         active[codes >> 16, codes & 0xFFFF] = True
@@ -236,13 +237,27 @@ class QuadGenerator:
         set_uniforms(prog, u_tile_base=base, u_tile_count=count, u_tile_stride=gx)
         prog.run(gx, -(-count // gx))
 
-    def _run_pixels(self, prog, count: int) -> None:
-        """Dispatch `prog` on the first `count` pixels of `self.pixels`, TILE * TILE a workgroup."""
+    def _run_pixels(self, prog, base: int, count: int) -> None:
+        """Dispatch `prog` on `count` entries of `self.pixels` from entry `base`, TILE * TILE a workgroup."""
         self.pixels.bind_to_storage_buffer(8)
         groups = -(-count // (TILE * TILE))
         gx = min(groups, MAX_GROUPS_X)
-        set_uniforms(prog, u_pixel_count=count, u_tile_stride=gx)
+        set_uniforms(prog, u_pixel_base=base, u_pixel_count=count, u_tile_stride=gx)
         prog.run(gx, -(-groups // gx))
+
+    def _write_entry_lists(self, listed: np.ndarray) -> np.ndarray:
+        """`listed` (level 0) and, for each Quad Map level above, the entries holding one of them, into
+        `self.pixels`; their first places (levels + 1 of them). The merge pass of level l runs on level l's list:
+        an entry holding none of the listed pixels has only empty children, so it would stay empty."""
+        ys, xs = listed >> np.uint32(16), listed & np.uint32(0xFFFF)
+        lists = [listed] + [np.unique(((ys >> np.uint32(l)) << np.uint32(16)) | (xs >> np.uint32(l)))
+                            for l in range(1, self.levels)]
+        data = np.concatenate(lists).astype(np.uint32)
+        if data.nbytes > self.pixels.size:
+            self.pixels.release()
+            self.pixels = self.ctx.buffer(reserve=2 * data.nbytes)
+        self.pixels.write(data.tobytes())
+        return np.concatenate([[0], np.cumsum([len(x) for x in lists])]).astype(int)
 
     def _camera_uniforms(self, prog, camera: Camera) -> None:
         f = camera.frustum
@@ -285,12 +300,12 @@ class QuadGenerator:
             # are listed too
             self.pixel_planes_buffer.clear()
             if len(listed):
-                self.pixels.write(listed.tobytes())
+                entry_bases = self._write_entry_lists(listed)
                 prog = self.plane_pass
                 self.pixel_planes_buffer.bind_to_storage_buffer(7)
                 self._camera_uniforms(prog, camera)
                 set_uniforms(prog, **pixel)
-                self._run_pixels(prog, len(listed))
+                self._run_pixels(prog, 0, len(listed))
             ctx.memory_barrier()
             self.pixel_planes.write(self.pixel_planes_buffer)
         elif len(tiles[0]):
@@ -316,7 +331,7 @@ class QuadGenerator:
         self.offsets[0].bind_to_storage_buffer(1)
         if listed is not None:
             if len(listed):
-                self._run_pixels(prog, len(listed))
+                self._run_pixels(prog, 0, len(listed))
         elif len(tiles[0]):
             set_uniforms(prog, u_pixel_count=0)
             self._run_tiles(prog, bases[0], len(tiles[0]))
@@ -341,7 +356,11 @@ class QuadGenerator:
             set_uniforms(prog, u_in_size=(iw, ih), u_out_size=(ow, oh), u_out_level=level,
                          u_coarse_passes=params.coarse_passes, u_delta_sim=params.delta_sim,
                          u_delta_max=params.delta_max, u_max_angle=max_angle, **gather)
-            if len(tiles[level]):
+            if listed is not None:
+                if len(listed):
+                    self._run_pixels(prog, entry_bases[level], entry_bases[level + 1] - entry_bases[level])
+            elif len(tiles[level]):
+                set_uniforms(prog, u_pixel_count=0)
                 self._run_tiles(prog, bases[level], len(tiles[level]))
             ctx.memory_barrier()
         ctx.finish()
