@@ -157,7 +157,8 @@ class QuadGenerator:
         self.merge = compute(ctx, HERE / "quad_merge.comp")
         self.gather = compute(ctx, HERE / "quad_gather.comp")
         self.occupancy = compute(ctx, HERE / "quad_occupancy.comp")
-        self.occupied = ctx.buffer(reserve=4 * self.tile_grids[0][0] * self.tile_grids[0][1])
+        self.occupied = ctx.buffer(reserve=8 * self.tile_grids[0][0] * self.tile_grids[0][1])
+        self._occupied_bits: np.ndarray | None = None    # the last occupied_tiles' read-back, (th, tw, 8) bytes
         self._empty_mask = ctx.texture((1, 1), 1, b"\x01", dtype="u1")
         self._mask = ctx.texture((width, height), 1, dtype="u1")
         self._mask.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -172,7 +173,7 @@ class QuadGenerator:
 
     def occupied_tiles(self, position: moderngl.Texture, max_depth: float = 0.0) -> np.ndarray:
         """(th, tw) bools: the tiles of the G-buffer texture `position` holding geometry (nearer than
-        `max_depth` when > 0). Reads back one word per tile."""
+        `max_depth` when > 0). Reads back a bit per pixel (`occupied_pixels`)."""
         tw, th = self.tile_grids[0]
         position.use(0)
         set_uniforms(self.occupancy, u_position=0, u_size=(self.width, self.height), u_tiles=(tw, th),
@@ -180,7 +181,16 @@ class QuadGenerator:
         self.occupied.bind_to_storage_buffer(0)
         self.occupancy.run(-(-tw // 8), -(-th // 8))
         self.ctx.memory_barrier()
-        return np.frombuffer(self.occupied.read(size=4 * tw * th), np.uint32).reshape(th, tw) != 0
+        self._occupied_bits = np.frombuffer(self.occupied.read(size=8 * tw * th), np.uint8).reshape(th, tw, 8)
+        return self._occupied_bits.any(axis=2)
+
+    def occupied_pixels(self) -> np.ndarray:
+        """(height, width) bools, top row first: the pixels holding geometry that the last `occupied_tiles` found."""
+        if self._occupied_bits is None:
+            raise RuntimeError("QuadGenerator.occupied_pixels: occupied_tiles has not run")
+        th, tw = self._occupied_bits.shape[:2]
+        bits = np.unpackbits(self._occupied_bits, axis=2, bitorder="little").reshape(th, tw, TILE, TILE)
+        return bits.transpose(0, 2, 1, 3).reshape(th * TILE, tw * TILE)[:self.height, :self.width].astype(bool)
 
     def active_tiles(self, camera: Camera, mask: np.ndarray | None = None, inner: Camera | None = None,
                      occupied: np.ndarray | None = None) -> list[np.ndarray]:
@@ -282,8 +292,10 @@ class QuadGenerator:
         bases = np.concatenate([[0], np.cumsum([len(t) for t in tiles])]).astype(int)
         if len(tiles[0]):
             self.tiles.write(np.concatenate(tiles + [ring]).astype(np.uint32).tobytes())
-        listed = (self.listed_pixels(mask, tiles[0])
-                  if mask is not None and inner is None and self.use_pixel_list and len(tiles[0]) else None)
+        # Pixels that may get a quad, where they are few: listed, the passes run on them (listed_pixels).
+        candidates = mask if mask is not None else None if occupied is None else self.occupied_pixels()
+        listed = (self.listed_pixels(candidates, tiles[0])
+                  if candidates is not None and inner is None and self.use_pixel_list and len(tiles[0]) else None)
         if listed is not None or len(tiles[0]) < self.tile_grids[0][0] * self.tile_grids[0][1]:
             for buf in self.planes:       # entries the passes do not visit are empty
                 buf.clear()

@@ -309,6 +309,31 @@ def test_sparse_mask_runs_on_its_pixels_with_the_quads_of_its_tiles(ctx, courtya
     assert listed.listed_pixels(dense, listed.active_tiles(cam, dense)[0]) is None
 
 
+def test_sparse_geometry_runs_on_its_pixels_with_the_quads_of_its_tiles(ctx, courtyard_renderer):
+    """A layer without sky quads (a hidden layer) whose geometry is sparse: occupied_pixels finds the pixels
+    holding geometry nearer than max_depth, a bit each, and the passes run on those (listed_pixels) with the quads
+    of the occupied tiles."""
+    from quadcast.render.renderer import read_texture
+    from quadcast.server.layers import LayerRenderer
+    cam = Camera.perspective(Pose.look_at([1.5, 1.6, 5], [-1, 1.5, 0]), 192, 108)
+    layers = LayerRenderer(courtyard_renderer, 192, 108, 2)
+    hidden = layers.render(cam, 0.0, 0.5)[1]
+    position = read_texture(hidden.position, 4, "f4")
+    params = QuadParams(sky=False, max_depth=12.0)
+    geometry = (position[..., 3] > 0) & (-position[..., 2] <= params.max_depth)
+    assert 0.01 < geometry.mean() < 0.2 and (position[..., 3] > 0).sum() > geometry.sum()   # sparse; some too far
+    listed, tiled = QuadGenerator(ctx, 192, 108), QuadGenerator(ctx, 192, 108)
+    tiled.use_pixel_list = False
+    visible = courtyard_renderer.gbuffer(cam, 0.0)
+    listed.generate(visible.position, visible.normal, cam, QuadParams())   # a whole view first: stale maps
+    occupied = listed.occupied_tiles(hidden.position, params.max_depth)
+    np.testing.assert_array_equal(listed.occupied_pixels(), geometry)
+    assert listed.listed_pixels(geometry, listed.active_tiles(cam, None, None, occupied)[0]) is not None
+    got, _ = listed.generate(hidden.position, hidden.normal, cam, params)
+    want, _ = tiled.generate(hidden.position, hidden.normal, cam, params)
+    assert len(want) > 50 and _same_quads(got, want)
+
+
 @pytest.fixture(scope="module")
 def moving_box_scene():
     return scene_from_dict({"models": [
