@@ -170,7 +170,6 @@ class LayerRenderer:
 
     def _grow_list(self, fragments: int) -> None:
         """Room for at least `fragments` in the one-pass peel's lists (doubling, within the per-pixel limit)."""
-        hw, hh = self.hidden_size
         capacity = max(self.list_capacity, 1)
         while capacity < fragments:
             capacity *= 2

@@ -296,10 +296,11 @@ class QuadGenerator:
         bases = np.concatenate([[0], np.cumsum([len(t) for t in tiles])]).astype(int)
         if len(tiles[0]):
             self.tiles.write(np.concatenate(tiles + [ring]).astype(np.uint32).tobytes())
-        # Pixels that may get a quad, where they are few: listed, the passes run on them (listed_pixels).
-        candidates = mask if mask is not None else None if occupied is None else self.occupied_pixels()
-        listed = (self.listed_pixels(candidates, tiles[0])
-                  if candidates is not None and inner is None and self.use_pixel_list and len(tiles[0]) else None)
+        # Pixels that may get a quad, where they are few: listed, the passes run on them (listed_pixels). Not with
+        # `inner` (the wide view): its plane pass needs the pixels inside the main view next to its own.
+        listed = None
+        if self.use_pixel_list and inner is None and len(tiles[0]) and (mask is not None or occupied is not None):
+            listed = self.listed_pixels(mask if mask is not None else self.occupied_pixels(), tiles[0])
         if listed is not None or len(tiles[0]) < self.tile_grids[0][0] * self.tile_grids[0][1]:
             for buf in self.planes:       # entries the passes do not visit are empty
                 buf.clear()

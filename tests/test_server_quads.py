@@ -313,7 +313,6 @@ def test_sparse_geometry_runs_on_its_pixels_with_the_quads_of_its_tiles(ctx, cou
     """A layer without sky quads (a hidden layer) whose geometry is sparse: occupied_pixels finds the pixels
     holding geometry nearer than max_depth, a bit each, and the passes run on those (listed_pixels) with the quads
     of the occupied tiles."""
-    from quadcast.render.renderer import read_texture
     from quadcast.server.layers import LayerRenderer
     cam = Camera.perspective(Pose.look_at([1.5, 1.6, 5], [-1, 1.5, 0]), 192, 108)
     layers = LayerRenderer(courtyard_renderer, 192, 108, 2)
