@@ -406,13 +406,16 @@ class DeferredRenderer:
     def geometry_pass(self, camera: Camera, t: float, target: GBuffer | None = None,
                       prog: moderngl.Program | None = None, cull: CullFn | None = None,
                       region: tuple[int, int, int, int] | None = None,
-                      closed_back_faces: bool = True) -> GBuffer:
+                      closed_back_faces: bool = True,
+                      exclude: tuple[int, int, int, int] | None = None) -> GBuffer:
         """Fill a G-buffer (the renderer's own for this size unless `target` is given). `prog` may replace the
         G-buffer program with one that includes render/material.glsl (e.g. the server's depth peeling); bind its
         extra textures to units >= 4 before calling. `cull` (see `CullFn`) restricts the pass to the pixels it
         leaves at depth 1; culled pixels stay cleared, which the lighting pass shades as (cheap) sky. `region`
         (x, y, w, h, pixels from the top-left corner) renders only there: the rest of the G-buffer keeps what it
-        held. `closed_back_faces=False`: see `draw_geometry`."""
+        held. `exclude` (x, y, w, h, from the top-left; with `region` None) leaves that rectangle cleared, with
+        nothing hit and depth 1, so a `geometry_only` lighting pass skips it too. `closed_back_faces=False`: see
+        `draw_geometry`."""
         gb = target or self.gbuffer_for(camera.width, camera.height)
         gb.geometry_fbo.use()
         if region is None:
@@ -420,6 +423,12 @@ class DeferredRenderer:
         else:
             gb.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=_gl_rect(region, gb.height))
             gb.geometry_fbo.scissor = _gl_rect(region, gb.height)
+        excluded = exclude is not None and exclude[2] > 0 and exclude[3] > 0
+        if excluded:
+            if region is not None:
+                raise ValueError("geometry_pass: give `region` or `exclude`, not both")
+            # depth 0 there: the depth test drops those fragments before they are shaded
+            gb.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=0.0, viewport=_gl_rect(exclude, gb.height))
         if cull is not None:
             cull(gb.depth)
             gb.geometry_fbo.use()
@@ -428,6 +437,8 @@ class DeferredRenderer:
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
         self.draw_geometry(camera, t, prog, closed_back_faces)
         gb.geometry_fbo.scissor = None
+        if excluded:
+            gb.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=_gl_rect(exclude, gb.height))
         gb.camera = camera
         return gb
 
@@ -480,10 +491,11 @@ class DeferredRenderer:
             self.ctx.disable(moderngl.DEPTH_TEST)
 
     def gbuffer(self, camera: Camera, t: float = 0.0, target: GBuffer | None = None,
-                region: tuple[int, int, int, int] | None = None, geometry_only: bool = False) -> GBuffer:
-        """Geometry and lighting passes (only within `region`, see `geometry_pass`; `geometry_only`, see
-        `lighting_pass`); the results stay on the GPU."""
-        gb = self.geometry_pass(camera, t, target, region=region)
+                region: tuple[int, int, int, int] | None = None, geometry_only: bool = False,
+                exclude: tuple[int, int, int, int] | None = None) -> GBuffer:
+        """Geometry and lighting passes (only within `region`, or not in `exclude`, see `geometry_pass`;
+        `geometry_only`, see `lighting_pass`); the results stay on the GPU."""
+        gb = self.geometry_pass(camera, t, target, region=region, exclude=exclude)
         self.lighting_pass(gb, t, region, geometry_only)
         return gb
 

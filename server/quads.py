@@ -25,6 +25,25 @@ HERE = Path(__file__).resolve().parent
 TILE = 8                 # the quad passes' workgroups are TILE x TILE entries of a map (quad_tiles.glsl)
 MAX_GROUPS_X = 1024      # workgroups per row of a dispatch over a tile list
 PLANE_BYTES, OFFSET_BYTES = 4 * 4, 16 * 4   # a Quad Map entry's plane and its 16 offsets (quad_entry.glsl)
+# The wide view's quads leave out the pixels whose rays lie inside the main view's frustum scaled by this (2% inside
+# its edges, so the wide view overlaps the main view by a pixel or two).
+INNER_KEEP = 0.98
+
+
+def inner_rect(wide: Camera, inner: Camera, margin_px: int = 3) -> tuple[int, int, int, int]:
+    """The pixels (x, y, w, h from the top-left) of view `wide` whose centres lie `margin_px` or more inside the
+    part of view `inner` (same pose) that `wide`'s quads leave out (`INNER_KEEP`): no quad of `wide`, nor the plane
+    of any neighbour one of its quads reads, comes from them. (0, 0, 0, 0) when there are none."""
+    wl, wr, wb, wt = wide.frustum.unit_extents
+    il, ir, ib, it = (INNER_KEEP * v for v in inner.frustum.unit_extents)
+    # pixel-centre coordinates (from the left, from the top) of the inner view's edges in the wide view
+    left, right = ((v - wl) / (wr - wl) * wide.width - 0.5 for v in (il, ir))
+    top, bottom = ((wt - v) / (wt - wb) * wide.height - 0.5 for v in (it, ib))
+    x0, x1 = max(0, math.ceil(left + margin_px)), min(wide.width - 1, math.floor(right - margin_px))
+    y0, y1 = max(0, math.ceil(top + margin_px)), min(wide.height - 1, math.floor(bottom - margin_px))
+    if x1 < x0 or y1 < y0:
+        return (0, 0, 0, 0)
+    return (x0, y0, x1 - x0 + 1, y1 - y0 + 1)
 
 
 @dataclass(frozen=True)
@@ -340,9 +359,7 @@ class QuadGenerator:
         self._camera_uniforms(prog, camera)
         fi = inner.frustum if inner is not None else None
         set_uniforms(prog, u_pixel_planes=3, u_exclude_inner=inner is not None,
-                     # 2% inside the main view's edges, so the wide view overlaps it by a pixel or two
-                     u_inner_frustum=tuple(0.98 * v / fi.near for v in (fi.left, fi.right, fi.bottom, fi.top))
-                     if fi else (0.0, 0.0, 0.0, 0.0),
+                     u_inner_frustum=tuple(INNER_KEEP * v for v in fi.unit_extents) if fi else (0.0, 0.0, 0.0, 0.0),
                      u_delta_max=params.delta_max, **pixel)
         self.planes[0].bind_to_storage_buffer(0)
         self.offsets[0].bind_to_storage_buffer(1)

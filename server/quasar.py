@@ -17,7 +17,7 @@ from quadcast.render.renderer import DeferredRenderer, GBuffer
 from quadcast.server.farfield import FarField
 from quadcast.server.layers import AtlasComposer, AtlasLayout, LayerRenderer, wide_camera
 from quadcast.server.method import MethodServer
-from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings, grow_mask, quad_stats
+from quadcast.server.quads import QuadGenerator, QuadParams, QuadTimings, grow_mask, inner_rect, quad_stats
 from quadcast.codec.encoder import AtlasEncoder, VideoSettings
 from quadcast.protocol.rate import OperatingPoint
 
@@ -112,6 +112,7 @@ class QuasarServer(MethodServer):
         self.wide_generator = self.generator_for(probe.width, probe.height)
         self.hidden_generator = self.generator_for(*hidden_size)
         self.wide_gbuffer = GBuffer(self.ctx, probe.width, probe.height)
+        self.skip_wide_inner = True   # the wide view is neither drawn nor lit where it makes no quads (`inner_rect`)
         self.reference_gbuffer = GBuffer(self.ctx, s.width, s.height)
         self.atlas = AtlasComposer(self.ctx, self.layout)
         self.encoder = AtlasEncoder(self.layout.width, self.layout.height, s.video)
@@ -247,8 +248,10 @@ class QuasarServer(MethodServer):
         t0 = time.perf_counter()
         gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity)
         wide_cam = wide_camera(camera, self._wide_fovy(t), s.wide_scale)
-        # Lit only where geometry is: the wide view gets no sky quads (the far field shows the sky).
-        wide_gb = self.renderer.gbuffer(wide_cam, t, target=self.wide_gbuffer, geometry_only=not s.hidden.sky)
+        # Lit only where geometry is: the wide view gets no sky quads (the far field shows the sky). Nor is it drawn
+        # where it makes no quads, inside the main view (its colour there is black in the atlas).
+        wide_gb = self.renderer.gbuffer(wide_cam, t, target=self.wide_gbuffer, geometry_only=not s.hidden.sky,
+                                        exclude=inner_rect(wide_cam, camera) if self.skip_wide_inner else None)
         # The reference view is rendered again where the scene moved since it was last rendered (the animated
         # objects and their shadows, §3.5.2: to find what changed, and for its current colour); elsewhere, and in a
         # static scene everywhere, what the reference frame rendered is still exact.

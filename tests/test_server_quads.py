@@ -497,6 +497,39 @@ def test_wide_view_widens_when_frames_come_far_apart(courtyard_renderer):
     server.close()
 
 
+def test_wide_view_is_not_drawn_where_it_makes_no_quads(courtyard_renderer):
+    """The wide view is neither drawn nor lit inside the main view, a margin inside the part its quads leave out
+    (`inner_rect`): the same geometry bytes as a server that draws all of it, along a walk with head turns and
+    with the wide view at its widest; nothing drawn and black inside the rectangle, all of it drawn outside."""
+    from quadcast.render.traces import resolve_trace
+    from quadcast.server.quads import inner_rect
+    trace = resolve_trace("builtin:walk")
+    s = QuasarSettings(width=160, height=96, layers=2)
+    skipping, drawing = QuasarServer(courtyard_renderer, s), QuasarServer(courtyard_renderer, s)
+    drawing.skip_wide_inner = False
+    rects = []
+    for k, t in enumerate((1.0, 1.1, 1.2, 4.0, 4.5, 9.0)):
+        pose = Pose(*trace.pose_at(t))
+        if k == 4:
+            for server in (skipping, drawing):
+                server.set_rotation_miss(50.0)      # the widest view: a smaller rectangle
+        a, b = skipping.encode(pose, t), drawing.encode(pose, t)
+        assert a.geometry == b.geometry, t
+        wide_cam = Camera.from_array(next(layer for layer in decode_quad_frame(a.geometry).layers
+                                          if layer.kind == LayerKind.WIDE).camera, 100, 60)
+        x, y, w, h = rect = inner_rect(wide_cam, skipping.camera_for(pose))
+        rects.append(rect)
+        assert w > 20 and h > 10, rect
+        inside = np.zeros((60, 100), bool)
+        inside[y:y + h, x:x + w] = True
+        got, full = skipping.wide_gbuffer.read_depth(), drawing.wide_gbuffer.read_depth()
+        assert np.isinf(got[inside]).all() and (skipping.wide_gbuffer.read_color()[inside] == 0).all()
+        assert np.array_equal(got[~inside], full[~inside]) and np.isfinite(full[inside]).mean() > 0.9
+    assert len(set(rects)) > 1                          # the rectangle follows the wide view's FOV
+    skipping.close()
+    drawing.close()
+
+
 def test_gathered_quads_come_out_by_size_then_row_then_column():
     """The GPU appends quads in any order; the server's QuadSet orders them by size, then y, then x, exactly as
     np.lexsort on those columns does (the payload must not depend on the GPU's scheduling)."""
