@@ -1,4 +1,11 @@
 // Material sampling and G-buffer outputs shared by every geometry-pass fragment shader.
+// ALBEDO says where the albedo comes from, fixed per program (render/renderer.py, MaterialProgram: one program per
+// source, the draw picks an object's): 0 the texture at the mesh's UVs, 1 the texture triplanar in object space,
+// 2 no texture (white: the base colour alone). In one program with the source a uniform, llvmpipe ran both ways of
+// sampling for every fragment, untextured or not (docs/speed.md, stop 43).
+#ifndef ALBEDO
+#define ALBEDO 0
+#endif
 in vec3 v_view_pos;
 in vec3 v_view_normal;
 in vec3 v_obj_pos;
@@ -7,7 +14,6 @@ in vec2 v_uv;
 
 uniform sampler2D u_texture;
 uniform vec4 u_base_color;
-uniform int u_uv_mode;        // 0: mesh UVs, 1: triplanar in object space
 uniform float u_uv_scale;
 uniform float u_specular;
 uniform float u_shininess;
@@ -22,14 +28,17 @@ layout(location = 3) out int f_object_id;
 vec3 srgb_to_linear(vec3 c) { return pow(c, vec3(2.2)); }
 
 vec4 sample_albedo() {
-    if (u_uv_mode == 0) {
-        return texture(u_texture, v_uv);
-    }
+#if ALBEDO == 2
+    return vec4(1.0);
+#elif ALBEDO == 1
     // Triplanar with the dominant axis only: one texture fetch (flat faces look the same as with blending).
     vec3 w = abs(v_obj_normal);
     vec3 p = v_obj_pos * u_uv_scale;
     vec2 uv = (w.x >= w.y && w.x >= w.z) ? p.zy : (w.y >= w.z ? p.xz : p.xy);
     return texture(u_texture, uv);
+#else
+    return texture(u_texture, v_uv);
+#endif
 }
 
 void write_gbuffer() {

@@ -27,6 +27,46 @@ called with the target's depth attachment after it is cleared to 1, it writes de
 rebinds its own and draws with depth test LESS, so only the pixels left at depth 1 are drawn."""
 
 
+class MaterialProgram:
+    """A geometry-pass program (its fragment shader includes render/material.glsl) built once per albedo source
+    (`ALBEDO`: 0 the texture at mesh UVs, 1 triplanar, 2 none), so that a draw runs only its object's way of sampling:
+    `variant(source)` is the program to draw with. `set_uniforms` sets a uniform on all of them (`get` returns a
+    member that writes to each), so callers treat it as one program."""
+
+    def __init__(self, ctx: moderngl.Context, vertex: Path, fragment: Path, **defines):
+        self.variants = tuple(program(ctx, vertex, fragment, ALBEDO=source, **defines) for source in range(3))
+
+    def variant(self, source: int) -> moderngl.Program:
+        return self.variants[source]
+
+    def get(self, name: str, default=None):
+        members = [m for m in (p.get(name, None) for p in self.variants) if m is not None]
+        return _Members(members) if members else default
+
+    def __contains__(self, name: str) -> bool:
+        return any(name in p for p in self.variants)
+
+
+class _Members:
+    """One uniform of each of a `MaterialProgram`'s programs, set together."""
+
+    def __init__(self, members: list):
+        self._members = members
+
+    def write(self, data: bytes) -> None:
+        for m in self._members:
+            m.write(data)
+
+    @property
+    def value(self):
+        return self._members[0].value
+
+    @value.setter
+    def value(self, value) -> None:
+        for m in self._members:
+            m.value = value
+
+
 @dataclass
 class RenderedFrame:
     """One rendered view as numpy arrays, top row first."""
@@ -122,7 +162,7 @@ class GBuffer:
 
 
 class _GpuMesh:
-    def __init__(self, ctx, mesh, geometry_prog, shadow_prog, white):
+    def __init__(self, ctx, mesh, shadow_prog, white):
         pos = mesh.positions
         uvs = mesh.uvs if mesh.uvs is not None else np.zeros((len(pos), 2), np.float32)
         # One buffer per attribute: llvmpipe is far slower with a padded interleaved layout in the shadow pass.
@@ -135,7 +175,6 @@ class _GpuMesh:
         lo, hi = pos.min(axis=0), pos.max(axis=0)
         self.box_corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                                      for z in (lo[2], hi[2])], np.float64)     # object space
-        self.geometry_vao = self.vao_for(geometry_prog)
         self.shadow_vao = ctx.vertex_array(shadow_prog, [(self.positions, "3f", "in_position")], self.ibo)
         mat = mesh.material
         if mat.texture is not None:
@@ -145,7 +184,8 @@ class _GpuMesh:
             self.texture.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
         else:
             self.texture = white
-        self.uv_mode = 1 if (mat.uv_mode == "triplanar" or mesh.uvs is None) and mat.texture is not None else 0
+        # where its albedo comes from (render/material.glsl's ALBEDO): no texture, triplanar or the mesh's UVs
+        self.albedo_source = 2 if mat.texture is None else 1 if mat.uv_mode == "triplanar" or mesh.uvs is None else 0
         self.material = mat
         self._mesh = mesh
         self._orientation: int | None = None
@@ -209,12 +249,12 @@ class DeferredRenderer:
         self.scene = scene
         self.ctx = ctx or gl_context()
         ctx = self.ctx
-        self.geometry_prog = program(ctx, HERE / "gbuffer.vert.glsl", HERE / "gbuffer.frag.glsl")
+        self.geometry_prog = MaterialProgram(ctx, HERE / "gbuffer.vert.glsl", HERE / "gbuffer.frag.glsl")
         self.shadow_prog = program(ctx, HERE / "shadow.vert.glsl", HERE / "shadow.frag.glsl")
         self.lighting_prog = program(ctx, HERE / "fullscreen.vert.glsl", HERE / "lighting.frag.glsl")
         self.fullscreen = ctx.vertex_array(self.lighting_prog, [])
         self.white = ctx.texture((1, 1), 4, bytes([255, 255, 255, 255]))
-        self.meshes = [_GpuMesh(ctx, o.mesh, self.geometry_prog, self.shadow_prog, self.white)
+        self.meshes = [_GpuMesh(ctx, o.mesh, self.shadow_prog, self.white)
                        for o in scene.objects]
         self.shadow_size = shadow_size
         self.shadow_map = ctx.depth_texture((shadow_size, shadow_size))
@@ -371,11 +411,12 @@ class DeferredRenderer:
                    | (z < -w).all(1) | (z > w).all(1))
         return ~outside
 
-    def draw_geometry(self, camera: Camera, t: float, prog: moderngl.Program | None = None,
+    def draw_geometry(self, camera: Camera, t: float, prog: MaterialProgram | None = None,
                       closed_back_faces: bool = True) -> None:
-        """Draw every object with `prog` (the G-buffer program unless given) into the bound framebuffer; objects
-        wholly outside the camera's frustum are skipped (`visible_objects`). `closed_back_faces=False` leaves out
-        the back faces of closed meshes (`_GpuMesh.orientation`), which no eye outside them can see."""
+        """Draw every object with `prog` (the G-buffer program unless given; each object with the variant for its
+        albedo source) into the bound framebuffer; objects wholly outside the camera's frustum are skipped
+        (`visible_objects`). `closed_back_faces=False` leaves out the back faces of closed meshes
+        (`_GpuMesh.orientation`), which no eye outside them can see."""
         prog = prog or self.geometry_prog
         set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
         visible = self.visible_objects(camera, t)
@@ -393,23 +434,24 @@ class DeferredRenderer:
                     self.ctx.disable(moderngl.CULL_FACE)
             mat = gm.material
             gm.texture.use(0)
-            set_uniforms(prog, u_model=model, u_texture=0,
-                         u_base_color=tuple(float(c) for c in mat.base_color), u_uv_mode=gm.uv_mode,
+            variant = prog.variant(gm.albedo_source)
+            set_uniforms(variant, u_model=model, u_texture=0,
+                         u_base_color=tuple(float(c) for c in mat.base_color),
                          u_uv_scale=float(mat.uv_scale), u_specular=float(mat.specular),
                          u_shininess=float(max(mat.shininess, 1.0)),
                          u_emissive=tuple(float(c) for c in mat.emissive), u_object_id=obj.object_id)
-            gm.vao_for(prog).render(moderngl.TRIANGLES)
+            gm.vao_for(variant).render(moderngl.TRIANGLES)
         if not closed_back_faces:
             self.ctx.disable(moderngl.CULL_FACE)
             self.ctx.cull_face = "back"
 
     def geometry_pass(self, camera: Camera, t: float, target: GBuffer | None = None,
-                      prog: moderngl.Program | None = None, cull: CullFn | None = None,
+                      prog: MaterialProgram | None = None, cull: CullFn | None = None,
                       region: tuple[int, int, int, int] | None = None,
                       closed_back_faces: bool = True,
                       exclude: tuple[int, int, int, int] | None = None) -> GBuffer:
         """Fill a G-buffer (the renderer's own for this size unless `target` is given). `prog` may replace the
-        G-buffer program with one that includes render/material.glsl (e.g. the server's depth peeling); bind its
+        G-buffer program with a `MaterialProgram` of its own (e.g. the server's depth peeling); bind its
         extra textures to units >= 4 before calling. `cull` (see `CullFn`) restricts the pass to the pixels it
         leaves at depth 1; culled pixels stay cleared, which the lighting pass shades as (cheap) sky. `region`
         (x, y, w, h, pixels from the top-left corner) renders only there: the rest of the G-buffer keeps what it

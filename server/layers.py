@@ -10,7 +10,7 @@ import numpy as np
 
 from quadcast.render.camera import Camera, Frustum
 from quadcast.render.gl import RENDER_DIR, can_copy_textures, compute, copy_texture, program, set_uniforms
-from quadcast.render.renderer import GBuffer, DeferredRenderer, read_texture
+from quadcast.render.renderer import DeferredRenderer, GBuffer, MaterialProgram, read_texture
 
 HERE = Path(__file__).resolve().parent
 MAX_DEPTH_LEVELS = 8   # levels of LayerRenderer.visible_max (the size of peel_visibility.glsl's u_max_levels)
@@ -75,15 +75,15 @@ class LayerRenderer:
         self.visible_max_levels = 0         # the levels the last `render` built
         self._depth_max = {level0: compute(self.ctx, HERE / "peel_depth_max.comp", LEVEL0=level0)
                            for level0 in (1, 0)}
-        self.peel = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl",
-                            MAX_DEPTH_LEVELS=MAX_DEPTH_LEVELS)
+        self.peel = MaterialProgram(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel.frag.glsl",
+                                    MAX_DEPTH_LEVELS=MAX_DEPTH_LEVELS)
         # The hidden layers from one draw of the scene (server/peel_list.frag.glsl stores every potentially visible
         # fragment behind the visible layer in per-pixel lists, server/peel_resolve.frag.glsl takes the layers from
         # them) instead of a draw per layer; False: a peel pass per layer. The same layers either way (on a GPU,
         # which may store a pixel's fragments out of drawing order, up to which of two at exactly one depth is kept).
         self.one_pass = True
-        self._peel_list = program(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel_list.frag.glsl",
-                                  MAX_DEPTH_LEVELS=MAX_DEPTH_LEVELS)
+        self._peel_list = MaterialProgram(self.ctx, RENDER_DIR / "gbuffer.vert.glsl", HERE / "peel_list.frag.glsl",
+                                          MAX_DEPTH_LEVELS=MAX_DEPTH_LEVELS)
         self._peel_resolve = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "peel_resolve.frag.glsl")
         self._peel_resolve_vao = self.ctx.vertex_array(self._peel_resolve, [])
         self._list_depth = self.ctx.depth_texture((hw, hh))    # the cull step's (see _depth_step)
@@ -109,7 +109,7 @@ class LayerRenderer:
         self._peel_cull_vao.render(moderngl.TRIANGLES, vertices=3)
         self.ctx.depth_func = "<"
 
-    def _peel_uniforms(self, prog: moderngl.Program, focal_px: float, max_level: int, max_radius_px: int,
+    def _peel_uniforms(self, prog: MaterialProgram, focal_px: float, max_level: int, max_radius_px: int,
                        viewcell_radius: float, connectivity: float) -> None:
         """The uniforms of server/peel_visibility.glsl (the visible layer's positions on unit 5, its farthest
         depths on 6)."""

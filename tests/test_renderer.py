@@ -39,6 +39,34 @@ def test_plane_depth_matches_analytic(plane_renderer):
     assert (frame.object_id == 1).all()
 
 
+def test_each_object_is_drawn_with_its_own_albedo_source(ctx):
+    """The geometry pass draws an object with the program variant for where its albedo comes from (no texture,
+    the texture at mesh UVs, triplanar): three walls with one base colour, the same half-red half-blue texture on
+    the second (mesh UVs: red on the left) and third (triplanar at 0.2: the texture wraps, blue on the left); the
+    untextured wall's albedo is its base colour."""
+    from quadcast.render.renderer import read_texture
+    walls = [{"primitive": "plane", "size": [2, 2], "rotation_deg": [90, 0, 0], "position": [x, 0, -4],
+              "color": [0.6, 0.3, 0.2]} for x in (-2.5, 0.0, 2.5)]
+    scene = scene_from_dict({"models": walls, "sun": {"direction": [0, 0, -1]}})
+    texture = np.zeros((8, 8, 4), np.uint8)
+    texture[..., 3] = 255
+    texture[:, :4, 0] = texture[:, 4:, 2] = 255
+    _, textured, triplanar = (o.mesh for o in scene.objects)
+    textured.material.texture = triplanar.material.texture = texture
+    textured.uvs = np.c_[textured.positions[:, 0] / 2 + 0.5, textured.positions[:, 2] / 2 + 0.5].astype(np.float32)
+    triplanar.material.uv_mode, triplanar.material.uv_scale = "triplanar", 0.2
+    renderer = DeferredRenderer(scene, ctx)
+    assert [gm.albedo_source for gm in renderer.meshes] == [2, 0, 1]
+    gb = renderer.gbuffer(Camera.perspective(Pose([0, 0, 0]), 96, 24, fovy_deg=30))
+    albedo, ids = read_texture(gb.albedo, 4, "f2")[12, :, :3], read_texture(gb.object_id, 1, "i4")[12]
+    red, blue = [0.6, 0, 0], [0, 0, 0.2]      # the texture's colours times the base colour; f16 targets
+    plain = albedo[ids == 1].astype(np.float32)
+    assert len(plain) > 10 and np.allclose(plain, [0.6, 0.3, 0.2], atol=1e-3)
+    for k, (left, right) in ((2, (red, blue)), (3, (blue, red))):
+        wall = albedo[ids == k].astype(np.float32)
+        assert np.allclose(wall[1:5], left, atol=1e-3) and np.allclose(wall[-5:-1], right, atol=1e-3), k
+
+
 def test_sky_has_infinite_depth_and_id_zero(plane_renderer):
     cam = Camera.perspective(Pose([0, 0, 0], [0, 1, 0, 0]), 64, 36)  # looking away from the wall
     frame = plane_renderer.render(cam)
