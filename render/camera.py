@@ -157,6 +157,16 @@ class Frustum:
         n = self.near
         return self.left / n, self.right / n, self.bottom / n, self.top / n
 
+    def sphere_outside(self, centre, radius: float) -> bool:
+        """Whether a sphere (`centre` in view space, -Z forward) lies wholly outside one of the frustum's six
+        planes, so that no point inside the frustum is within `radius` of `centre`."""
+        x, y, z = (float(c) for c in centre)
+        l, r, b, t = self.unit_extents
+        # inward normals of the side planes through the eye, (1, 0, l) for the left one and so on, then near, far
+        sides = ((x + l * z) / np.hypot(1.0, l), (-x - r * z) / np.hypot(1.0, r),
+                 (y + b * z) / np.hypot(1.0, b), (-y - t * z) / np.hypot(1.0, t), -z - self.near, z + self.far)
+        return min(sides) < -radius
+
     def as_array(self) -> np.ndarray:
         return np.array([self.left, self.right, self.bottom, self.top, self.near, self.far])
 

@@ -257,6 +257,7 @@ class DeferredRenderer:
         self.meshes = [_GpuMesh(ctx, o.mesh, self.shadow_prog, self.white)
                        for o in scene.objects]
         self.shadow_size = shadow_size
+        self.cull_lights = True      # leave out point lights that cannot reach the view (lighting_pass)
         self.shadow_map = ctx.depth_texture((shadow_size, shadow_size))
         self.shadow_map.compare_func = "<="
         self.shadow_map.filter = (moderngl.LINEAR, moderngl.LINEAR)
@@ -509,7 +510,11 @@ class DeferredRenderer:
         gb.position.use(2)
         self.shadow_map.use(3)
         sun_dir = view[:3, :3] @ (np.asarray(scene.sun.direction) / np.linalg.norm(scene.sun.direction))
-        lights = scene.point_lights
+        # A point light lights nothing beyond its radius (lighting.frag.glsl's window is 0 there, and so is what it
+        # adds): one whose sphere lies outside the view's frustum is left out, the same image for less work.
+        lights = [light for light in scene.point_lights
+                  if not (self.cull_lights and camera.frustum.sphere_outside(
+                      (view @ np.r_[light.position, 1.0])[:3], 1.01 * light.radius + 0.01))]
         n = len(lights)
         pad = scene.MAX_POINT_LIGHTS - n
         light_pos = np.array([(view @ np.r_[l.position, 1.0])[:3] for l in lights] + [[0, 0, 0]] * pad, "f4")

@@ -67,6 +67,45 @@ def test_each_object_is_drawn_with_its_own_albedo_source(ctx):
         assert np.allclose(wall[1:5], left, atol=1e-3) and np.allclose(wall[-5:-1], right, atol=1e-3), k
 
 
+def test_point_lights_that_cannot_reach_the_view_are_left_out_without_changing_the_image(courtyard_renderer):
+    """The lighting pass leaves out point lights whose sphere lies outside the view's frustum (`Frustum.sphere_outside`,
+    checked here against points sampled inside the frustum): the same lit image as with every light, at views that
+    leave some out and one that keeps them all."""
+    from quadcast.render.camera import Frustum
+    from quadcast.render.renderer import read_texture
+    frustum = Frustum.symmetric(60, 16 / 9, 0.1, 40.0)
+    rng = np.random.default_rng(5)
+    l, r, b, t = frustum.unit_extents
+    z = -rng.uniform(0.1, 40.0, 50_000)
+    u, v = rng.uniform(size=(2, 50_000))
+    inside = np.c_[(l + (r - l) * u) * -z, (b + (t - b) * v) * -z, z]
+    verdicts = []
+    for _ in range(400):
+        centre, radius = rng.uniform([-40, -40, -50], [40, 40, 20]), rng.uniform(0.5, 8.0)
+        outside = frustum.sphere_outside(centre, radius)
+        assert not (outside and (np.linalg.norm(inside - centre, axis=1) < radius).any()), (centre, radius)
+        verdicts.append(outside)
+    assert 0 < sum(verdicts) < len(verdicts)
+    lights = courtyard_renderer.scene.point_lights
+    left_out = []
+    # the last view has a light 3 m behind it: outside the frustum, but lighting the ground in front of the eye
+    for pose in (Pose.look_at([0, 1.6, 9], [0, 1.6, 20]), Pose.look_at([6, 1.6, 6], [9, 1.6, 9]),
+                 Pose.look_at([0, 1.6, 6], [0, 1.5, 0]), Pose.look_at([7, 1.6, 4], [7, 1.0, -4])):
+        camera = Camera.perspective(pose, 96, 54)
+        view = camera.view_matrix()
+        left_out.append(sum(camera.frustum.sphere_outside((view @ np.r_[light.position, 1.0])[:3], light.radius)
+                            for light in lights))
+        gb = courtyard_renderer.gbuffer(camera, 0.0)
+        culled = read_texture(gb.color, 4, "u1")
+        courtyard_renderer.cull_lights = False
+        try:
+            courtyard_renderer.lighting_pass(gb, 0.0)
+        finally:
+            courtyard_renderer.cull_lights = True
+        assert np.array_equal(read_texture(gb.color, 4, "u1"), culled), pose
+    assert max(left_out) >= 2 and min(left_out) == 0, left_out
+
+
 def test_sky_has_infinite_depth_and_id_zero(plane_renderer):
     cam = Camera.perspective(Pose([0, 0, 0], [0, 1, 0, 0]), 64, 36)  # looking away from the wall
     frame = plane_renderer.render(cam)
