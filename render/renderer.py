@@ -412,15 +412,30 @@ class DeferredRenderer:
                    | (z < -w).all(1) | (z > w).all(1))
         return ~outside
 
+    def objects_within(self, camera: Camera, t: float, rect: tuple[int, int, int, int]) -> np.ndarray:
+        """(n_objects,) bools: the objects whose bounding box lies wholly in front of the eye and projects inside
+        `rect` (x, y, w, h, pixels from the top-left corner of `camera`'s image) at time t, so that every fragment
+        they draw is in `rect`."""
+        clip = self._objects_at(t).boxes @ (camera.projection_matrix() @ camera.view_matrix()).T  # (n, 8, 4)
+        x, y, _, w = np.moveaxis(clip, -1, 0)
+        front = (w > 0).all(1)
+        w = np.where(w > 0, w, 1.0)
+        px, py = (x / w * 0.5 + 0.5) * camera.width, (0.5 - y / w * 0.5) * camera.height
+        rx, ry, rw, rh = rect
+        return front & (px.min(1) >= rx) & (px.max(1) <= rx + rw) & (py.min(1) >= ry) & (py.max(1) <= ry + rh)
+
     def draw_geometry(self, camera: Camera, t: float, prog: MaterialProgram | None = None,
-                      closed_back_faces: bool = True) -> None:
+                      closed_back_faces: bool = True, exclude: tuple[int, int, int, int] | None = None) -> None:
         """Draw every object with `prog` (the G-buffer program unless given; each object with the variant for its
         albedo source) into the bound framebuffer; objects wholly outside the camera's frustum are skipped
-        (`visible_objects`). `closed_back_faces=False` leaves out the back faces of closed meshes
+        (`visible_objects`), and with `exclude` (a rect, see `geometry_pass`) those wholly inside it
+        (`objects_within`). `closed_back_faces=False` leaves out the back faces of closed meshes
         (`_GpuMesh.orientation`), which no eye outside them can see."""
         prog = prog or self.geometry_prog
         set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
         visible = self.visible_objects(camera, t)
+        if exclude is not None and exclude[2] > 0 and exclude[3] > 0:
+            visible &= ~self.objects_within(camera, t, exclude)
         placed = self._objects_at(t)
         for obj, gm, shown, model, mirrored in zip(self.scene.objects, self.meshes, visible, placed.model_bytes,
                                                    placed.mirrored):
@@ -457,7 +472,8 @@ class DeferredRenderer:
         leaves at depth 1; culled pixels stay cleared, which the lighting pass shades as (cheap) sky. `region`
         (x, y, w, h, pixels from the top-left corner) renders only there: the rest of the G-buffer keeps what it
         held. `exclude` (x, y, w, h, from the top-left; with `region` None) leaves that rectangle cleared, with
-        nothing hit and depth 1, so a `geometry_only` lighting pass skips it too. `closed_back_faces=False`: see
+        nothing hit and depth 1, so a `geometry_only` lighting pass skips it too; objects wholly inside it are not
+        drawn. `closed_back_faces=False`: see
         `draw_geometry`."""
         gb = target or self.gbuffer_for(camera.width, camera.height)
         gb.geometry_fbo.use()
@@ -478,7 +494,7 @@ class DeferredRenderer:
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-        self.draw_geometry(camera, t, prog, closed_back_faces)
+        self.draw_geometry(camera, t, prog, closed_back_faces, exclude=exclude if excluded else None)
         gb.geometry_fbo.scissor = None
         if excluded:
             gb.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=_gl_rect(exclude, gb.height))

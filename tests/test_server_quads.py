@@ -500,14 +500,15 @@ def test_wide_view_widens_when_frames_come_far_apart(courtyard_renderer):
 def test_wide_view_is_not_drawn_where_it_makes_no_quads(courtyard_renderer):
     """The wide view is neither drawn nor lit inside the main view, a margin inside the part its quads leave out
     (`inner_rect`): the same geometry bytes as a server that draws all of it, along a walk with head turns and
-    with the wide view at its widest; nothing drawn and black inside the rectangle, all of it drawn outside."""
+    with the wide view at its widest; nothing drawn and black inside the rectangle, all of it drawn outside, and the
+    objects wholly inside it not drawn at all."""
     from quadcast.render.traces import resolve_trace
     from quadcast.server.quads import inner_rect
     trace = resolve_trace("builtin:walk")
     s = QuasarSettings(width=160, height=96, layers=2)
     skipping, drawing = QuasarServer(courtyard_renderer, s), QuasarServer(courtyard_renderer, s)
     drawing.skip_wide_inner = False
-    rects = []
+    rects, skipped = [], 0
     for k, t in enumerate((1.0, 1.1, 1.2, 4.0, 4.5, 9.0)):
         pose = Pose(*trace.pose_at(t))
         if k == 4:
@@ -525,7 +526,9 @@ def test_wide_view_is_not_drawn_where_it_makes_no_quads(courtyard_renderer):
         got, full = skipping.wide_gbuffer.read_depth(), drawing.wide_gbuffer.read_depth()
         assert np.isinf(got[inside]).all() and (skipping.wide_gbuffer.read_color()[inside] == 0).all()
         assert np.array_equal(got[~inside], full[~inside]) and np.isfinite(full[inside]).mean() > 0.9
+        skipped += int(courtyard_renderer.objects_within(wide_cam, t, rect).sum())
     assert len(set(rects)) > 1                          # the rectangle follows the wide view's FOV
+    assert skipped > 0                                  # objects wholly inside it were not drawn at all
     skipping.close()
     drawing.close()
 
