@@ -473,8 +473,7 @@ class DeferredRenderer:
         (x, y, w, h, pixels from the top-left corner) renders only there: the rest of the G-buffer keeps what it
         held. `exclude` (x, y, w, h, from the top-left; with `region` None) leaves that rectangle cleared, with
         nothing hit and depth 1, so a `geometry_only` lighting pass skips it too; objects wholly inside it are not
-        drawn. `closed_back_faces=False`: see
-        `draw_geometry`."""
+        drawn. `closed_back_faces=False`: see `draw_geometry`."""
         gb = target or self.gbuffer_for(camera.width, camera.height)
         gb.geometry_fbo.use()
         if region is None:
