@@ -43,8 +43,6 @@ class MaterialProgram:
         members = [m for m in (p.get(name, None) for p in self.variants) if m is not None]
         return _Members(members) if members else default
 
-    def __contains__(self, name: str) -> bool:
-        return any(name in p for p in self.variants)
 
 
 class _Members:
@@ -527,14 +525,14 @@ class DeferredRenderer:
         sun_dir = view[:3, :3] @ (np.asarray(scene.sun.direction) / np.linalg.norm(scene.sun.direction))
         # A point light lights nothing beyond its radius (lighting.frag.glsl's window is 0 there, and so is what it
         # adds): one whose sphere lies outside the view's frustum is left out, the same image for less work.
-        lights = [light for light in scene.point_lights
-                  if not (self.cull_lights and camera.frustum.sphere_outside(
-                      (view @ np.r_[light.position, 1.0])[:3], 1.01 * light.radius + 0.01))]
+        lights = [(light, (view @ np.r_[light.position, 1.0])[:3]) for light in scene.point_lights]
+        lights = [(light, at) for light, at in lights
+                  if not (self.cull_lights and camera.frustum.sphere_outside(at, 1.01 * light.radius + 0.01))]
         n = len(lights)
         pad = scene.MAX_POINT_LIGHTS - n
-        light_pos = np.array([(view @ np.r_[l.position, 1.0])[:3] for l in lights] + [[0, 0, 0]] * pad, "f4")
-        light_col = np.array([np.asarray(l.color) * l.intensity for l in lights] + [[0, 0, 0]] * pad, "f4")
-        light_rad = np.array([l.radius for l in lights] + [1.0] * pad, "f4")
+        light_pos = np.array([at for _, at in lights] + [[0, 0, 0]] * pad, "f4")
+        light_col = np.array([np.asarray(l.color) * l.intensity for l, _ in lights] + [[0, 0, 0]] * pad, "f4")
+        light_rad = np.array([l.radius for l, _ in lights] + [1.0] * pad, "f4")
         set_uniforms(prog, u_albedo=0, u_normal=1, u_position=2, u_shadow_map=3,
                      u_inv_view=gl_matrix(np.linalg.inv(view)),
                      u_extents=camera.frustum.unit_extents,

@@ -247,12 +247,10 @@ class LayerRenderer:
                     r.lighting_pass(gb, t, geometry_only=True)
                     layers.append(gb)
                 return layers
+        set_uniforms(self.peel, u_prev_position=4)
+        self._peel_uniforms(self.peel, focal_px, max_level, max_radius_px, viewcell_radius, connectivity)
         for gb in self.hidden:
             prev_position.use(4)
-            visible_position.use(5)
-            self.visible_max.use(6)
-            set_uniforms(self.peel, u_prev_position=4)
-            self._peel_uniforms(self.peel, focal_px, max_level, max_radius_px, viewcell_radius, connectivity)
             r.geometry_pass(small, t, target=gb, prog=self.peel, cull=self._cull_where_empty(prev_position),
                             closed_back_faces=not self.skip_closed_back_faces)
             self._depth_step(gb.depth, gb.position, restore=True)

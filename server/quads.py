@@ -242,23 +242,15 @@ class QuadGenerator:
         return (ys[keep].astype(np.uint32) << np.uint32(16)) | xs[keep].astype(np.uint32)
 
     def _inside_tiles(self, camera: Camera, inner: Camera) -> np.ndarray:
-        """(th, tw) bools: tiles whose every pixel centre is a pixel or more inside `inner`'s frustum (as the
-        create pass tests it, 2% in from its edges), so no pixel of theirs gets a quad."""
-        f, fi = camera.frustum, inner.frustum
+        """(th, tw) bools: tiles whose every pixel centre is a pixel or more inside the part of `inner`'s frustum
+        the create pass leaves out (`inner_rect`), so no pixel of theirs gets a quad."""
         tw, th = self.tile_grids[0]
-        px = (f.right - f.left) / f.near / self.width         # x/z (and y/z) of one pixel
-        py = (f.top - f.bottom) / f.near / self.height
-        lo_x, hi_x = 0.98 * fi.left / fi.near + px, 0.98 * fi.right / fi.near - px
-        lo_y, hi_y = 0.98 * fi.bottom / fi.near + py, 0.98 * fi.top / fi.near - py
-        x0 = np.arange(tw) * TILE + 0.5                       # first and last pixel centres of each tile
-        x1 = np.minimum(x0 + TILE - 1, self.width - 0.5)
-        y0 = np.arange(th) * TILE + 0.5
-        y1 = np.minimum(y0 + TILE - 1, self.height - 0.5)
-        rx0, rx1 = f.left / f.near + px * x0, f.left / f.near + px * x1
-        ry0, ry1 = f.top / f.near - py * y0, f.top / f.near - py * y1     # rows from the top: y/z decreases
-        in_x = (rx0 > lo_x) & (rx1 < hi_x)
-        in_y = (ry1 > lo_y) & (ry0 < hi_y)
-        return in_y[:, None] & in_x[None, :]
+        x, y, w, h = inner_rect(camera, inner, margin_px=1)
+        def inside(count: int, size: int, lo: int, n: int) -> np.ndarray:   # tiles' first and last pixels in lo..lo+n-1
+            first = np.arange(count) * TILE
+            last = np.minimum(first + TILE - 1, size - 1)
+            return (first >= lo) & (last <= lo + n - 1) if n > 0 else np.zeros(count, bool)
+        return inside(th, self.height, y, h)[:, None] & inside(tw, self.width, x, w)[None, :]
 
     def _run_tiles(self, prog, base: int, count: int) -> None:
         """Dispatch `prog` on `count` tiles of the list from entry `base`."""
