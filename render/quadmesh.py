@@ -204,12 +204,12 @@ class QuadMesh:
     def build(self, layers: list[MeshLayer], atlas_size: tuple[int, int]) -> None:
         """Generate every layer's mesh (one compute dispatch per layer), but for a layer whose quads are the very
         same `QuadSet`, camera and atlas place as at the previous build, and edit a layer whose `edit` starts
-        from them (see the module's doc)."""
-        while len(self._buffers) < len(layers):
-            self._buffers.append(_LayerBuffers())
+        from them (see the module's doc). Each layer gets the buffers built from its quads (or from those its
+        edit starts from) wherever it stood in the last build's list: a client's far field, kept from its reference
+        frame, comes after a number of fill-in layers that changes from frame to frame."""
         self.layers = []
         self.quad_count = sum(len(layer.quads) for layer in layers)
-        for layer, buf in zip(layers, self._buffers):
+        for layer, buf in zip(layers, self._assign_buffers(layers)):
             key = (layer.camera.to_array().tobytes(), tuple(layer.atlas_rect), tuple(atlas_size))
             if buf.quads is not layer.quads or buf.key != key:
                 edit = layer.edit
@@ -229,9 +229,28 @@ class QuadMesh:
                         buf.pack(self.ctx, self.programs)
             if buf.indices:
                 self.layers.append((layer, buf))
-        for buf in self._buffers[len(layers):]:
-            buf.quads = None
         self.ctx.memory_barrier()
+
+    def _assign_buffers(self, layers: list[MeshLayer]) -> list[_LayerBuffers]:
+        """The buffers each layer is built in: those last built from its quads or from its edit's previous ones,
+        else any left over (or new ones); the buffers no layer takes forget what they held."""
+        free = {id(buf.quads): buf for buf in self._buffers if buf.quads is not None}
+        chosen = []
+        for layer in layers:
+            previous = layer.edit.previous if layer.edit is not None else None
+            buf = free.pop(id(layer.quads), None) or (free.pop(id(previous), None) if previous is not None else None)
+            chosen.append(buf)
+        taken = {id(buf) for buf in chosen if buf is not None}
+        spare = [buf for buf in self._buffers if id(buf) not in taken]
+        for buf in spare:
+            buf.quads = None
+        for k, buf in enumerate(chosen):
+            if buf is None:
+                if not spare:
+                    spare.append(_LayerBuffers())
+                    self._buffers.append(spare[-1])
+                chosen[k] = spare.pop(0)
+        return chosen
 
     def _generate(self, layer: MeshLayer, buf: _LayerBuffers, atlas_size: tuple[int, int]) -> None:
         n = len(layer.quads)

@@ -137,6 +137,35 @@ def test_first_residual_frame_after_a_reference_is_an_edit(ctx, monkeypatch, min
     assert len(edited) == 2 * (w * h - 6) if min_run_quads is None else len(edited) < 100   # runs: rectangles
 
 
+def test_a_layer_kept_from_the_last_build_is_not_rebuilt_wherever_it_stands(ctx, monkeypatch):
+    """A client's far field stays from its reference frame while the fill-in layers before it in the list come and
+    go: a layer whose quads the last build already holds keeps its buffers, wherever it stood, and the mesh draws
+    what a fresh build of the same layers draws."""
+    w, h = 32, 18
+    camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
+    rng = np.random.default_rng(7)
+    near, far = (camera_facing_quads(rng, n, w, h, 2) for n in (40, 60))
+    kept = MeshLayer(far, camera, (w, 0, w, h), 2.0)
+    mesh = QuadMesh(ctx)
+    mesh.build([MeshLayer(near, camera, (0, 0, w, h)), kept], (2 * w, h))
+    (_, far_buffers), = [(l, b) for l, b in mesh.layers if l is kept]
+    generated = []
+    generate = mesh._generate
+    monkeypatch.setattr(mesh, "_generate", lambda layer, *args: generated.append(layer) or generate(layer, *args))
+    fill_ins = [MeshLayer(camera_facing_quads(rng, 30, w, h, 1), camera, (0, 0, w, h)) for _ in range(2)]
+    for layers in ([*fill_ins, kept], [kept], [fill_ins[0], kept]):
+        generated.clear()
+        mesh.build(layers, (2 * w, h))
+        assert kept not in generated and [b for l, b in mesh.layers if l is kept] == [far_buffers]
+        assert [l for l, _ in mesh.layers] == layers
+        fresh = QuadMesh(ctx)
+        fresh.build(layers, (2 * w, h))
+        drawn, built = live_triangles(mesh), live_triangles(fresh)
+        assert len(drawn) == len(built) == len(layers)
+        for a, b in zip(drawn, built):
+            np.testing.assert_array_equal(a, b)
+
+
 def test_quads_on_one_surface_draw_as_rectangles(ctx):
     """1-pixel quads on two planes (x < 40 and x >= 40) in a 64 x 8 layer are drawn as five rectangles: rows end
     where the surface changes and at every 16th pixel, the 8 rows of each stack into one. The view from a nearby
