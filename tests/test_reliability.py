@@ -458,3 +458,39 @@ def test_a_frame_of_empty_layers_is_applied_and_rendered(ctx):
         assert client.render(Pose([0, 1.6, 0])).shape == (h, w, 3)
     finally:
         client.close()
+
+
+# ---------------------------------------------------------------------------------------------- spare workers
+
+def test_spare_workers_boot_beside_running_sessions_only_when_none_is_left(monkeypatch):
+    """A session claims a booted spare worker process. While sessions run, the server boots a replacement only when
+    it took the last spare (booting one takes seconds of the CPU the running sessions' frames need); the rest are
+    booted once no session runs."""
+    import quadcast.server.app as app
+
+    booted = []
+
+    class FakeProcess:
+        alive = True
+
+        def __init__(self, *args, **kw):
+            booted.append(self)
+
+        def close(self, timeout=None):
+            pass
+
+    monkeypatch.setattr(app, "ProcessWorker", FakeProcess)
+    server = LiveServer(ServerConfig(worker="process", spare_workers=2), make_server=None)
+    server._spawn_spares()
+    assert len(booted) == 2
+    server.admission.sessions = 1
+    assert server.claim_process() is booted[0]
+    assert len(booted) == 2 and list(server._spares) == [booted[1]]     # one spare left: nothing boots
+    server.admission.sessions = 2
+    assert server.claim_process() is booted[1]
+    assert len(booted) == 3 and list(server._spares) == [booted[2]]     # the last one taken: one boots
+    server.session_ended(app.ServerCounters())
+    assert len(booted) == 3                                             # a session still runs
+    server.admission.sessions = 0
+    server.session_ended(app.ServerCounters())
+    assert len(booted) == 4 and len(server._spares) == 2                # none runs: back to two

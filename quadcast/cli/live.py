@@ -257,7 +257,8 @@ def add_live_commands(sub) -> None:
                    help="where each session renders and encodes: its own process (default), or a thread of the "
                         "server's process (stalls the event loop while it renders)")
     p.add_argument("--spare-workers", type=int, default=2,
-                   help="worker processes kept booted for the next sessions (--worker process)")
+                   help="worker processes kept booted for the next sessions (--worker process): all of them "
+                        "while no session runs, one while sessions do")
     p.add_argument("-v", "--verbose", action="store_true", help="log sessions to stderr")
     p.set_defaults(func=cmd_server)
 
