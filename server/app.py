@@ -616,7 +616,7 @@ class LiveServer:
     def claim_process(self) -> ProcessWorker:
         """A worker process for a new session: the oldest (warmest) spare, or a new one. While sessions run, the
         spare it took is replaced only if it was the last: booting a process (modules, GL context, scene: about
-        3 s of CPU here) beside running sessions takes their frames' CPU (`make demo`: 38-39 frames in its 10 s
+        3 s of CPU here) beside running sessions takes their frames' CPU (`quadcast demo`: 38-39 frames in its 10 s
         against 43-50 without). The others are booted when no session runs (`session_ended`)."""
         proc = None
         while self._spares and proc is None:
