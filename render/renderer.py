@@ -44,7 +44,6 @@ class MaterialProgram:
         return _Members(members) if members else default
 
 
-
 class _Members:
     """One uniform of each of a `MaterialProgram`'s programs, set together."""
 
@@ -228,6 +227,11 @@ def _gl_rect(region: tuple[int, int, int, int], height: int) -> tuple[int, int, 
     return (int(x), int(height - y - h), int(w), int(h))
 
 
+def _has_area(rect: tuple[int, int, int, int] | None) -> bool:
+    """Whether `rect` (x, y, w, h) is given and covers at least one pixel."""
+    return rect is not None and rect[2] > 0 and rect[3] > 0
+
+
 @dataclass
 class _Placement:
     """Where a renderer's objects are at time `t` (DeferredRenderer._objects_at)."""
@@ -401,11 +405,14 @@ class DeferredRenderer:
         placed.t = t
         return placed
 
+    def _box_clip(self, camera: Camera, t: float) -> np.ndarray:
+        """(n_objects, 8, 4): each object's bounding-box corners at time t in `camera`'s clip space."""
+        return self._objects_at(t).boxes @ (camera.projection_matrix() @ camera.view_matrix()).T
+
     def visible_objects(self, camera: Camera, t: float) -> np.ndarray:
         """(n_objects,) bools: the objects whose bounding box is not wholly outside one plane of the camera's
         frustum at time t. The others cannot draw a fragment: skipping them leaves the image as it is."""
-        clip = self._objects_at(t).boxes @ (camera.projection_matrix() @ camera.view_matrix()).T  # (n, 8, 4)
-        x, y, z, w = np.moveaxis(clip, -1, 0)
+        x, y, z, w = np.moveaxis(self._box_clip(camera, t), -1, 0)
         outside = ((x < -w).all(1) | (x > w).all(1) | (y < -w).all(1) | (y > w).all(1)
                    | (z < -w).all(1) | (z > w).all(1))
         return ~outside
@@ -414,8 +421,7 @@ class DeferredRenderer:
         """(n_objects,) bools: the objects whose bounding box lies wholly in front of the eye and projects inside
         `rect` (x, y, w, h, pixels from the top-left corner of `camera`'s image) at time t, so that every fragment
         they draw is in `rect`."""
-        clip = self._objects_at(t).boxes @ (camera.projection_matrix() @ camera.view_matrix()).T  # (n, 8, 4)
-        x, y, _, w = np.moveaxis(clip, -1, 0)
+        x, y, _, w = np.moveaxis(self._box_clip(camera, t), -1, 0)
         front = (w > 0).all(1)
         w = np.where(w > 0, w, 1.0)
         px, py = (x / w * 0.5 + 0.5) * camera.width, (0.5 - y / w * 0.5) * camera.height
@@ -432,7 +438,7 @@ class DeferredRenderer:
         prog = prog or self.geometry_prog
         set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
         visible = self.visible_objects(camera, t)
-        if exclude is not None and exclude[2] > 0 and exclude[3] > 0:
+        if _has_area(exclude):
             visible &= ~self.objects_within(camera, t, exclude)
         placed = self._objects_at(t)
         for obj, gm, shown, model, mirrored in zip(self.scene.objects, self.meshes, visible, placed.model_bytes,
@@ -479,7 +485,7 @@ class DeferredRenderer:
         else:
             gb.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=_gl_rect(region, gb.height))
             gb.geometry_fbo.scissor = _gl_rect(region, gb.height)
-        excluded = exclude is not None and exclude[2] > 0 and exclude[3] > 0
+        excluded = _has_area(exclude)
         if excluded:
             if region is not None:
                 raise ValueError("geometry_pass: give `region` or `exclude`, not both")
