@@ -227,6 +227,19 @@ def _gl_rect(region: tuple[int, int, int, int], height: int) -> tuple[int, int, 
     return (int(x), int(height - y - h), int(w), int(h))
 
 
+def _clip_to_near(clip: np.ndarray, near: float) -> np.ndarray:
+    """The clip-space points ((n, 4), w the view depth) of a convex volume's part in front of the near plane
+    (w >= `near`), as points whose hull it is: the points in front and, on the plane, where each segment from one
+    in front to one behind crosses it (among them the clipped hull's every corner, and all within it)."""
+    w = clip[:, 3]
+    front, behind = clip[w >= near], clip[w < near]
+    if not len(behind) or not len(front):
+        return front
+    a, b = front[:, None, :], behind[None, :, :]
+    s = (a[..., 3] - near) / (a[..., 3] - b[..., 3])             # > 0 and <= 1: w falls from >= near to < near
+    return np.concatenate([front, (a + s[..., None] * (b - a)).reshape(-1, 4)])
+
+
 def _has_area(rect: tuple[int, int, int, int] | None) -> bool:
     """Whether `rect` (x, y, w, h) is given and covers at least one pixel."""
     return rect is not None and rect[2] > 0 and rect[3] > 0
@@ -349,29 +362,28 @@ class DeferredRenderer:
         """The image rectangle (x, y, w, h, from the top-left corner) outside which the scene looks the same from
         `camera` at every time in `times`: the bounding boxes of the animated objects at those times and their
         sun shadows (each box swept along the sunlight down to the lowest point of the scene, which contains every
-        surface its shadow can fall on). (0, 0, 0, 0) when nothing animated shows; the whole image when a box
-        reaches behind the camera."""
+        surface its shadow can fall on). (0, 0, 0, 0) when nothing animated shows. A box or shadow reaching behind
+        the camera counts with its part in front of the near plane (`_clip_to_near`), what GL draws of it."""
         scene, w, h = self.scene, camera.width, camera.height
         sun = np.asarray(scene.sun.direction, np.float64)
         sun = sun / np.linalg.norm(sun)
         if self._floor is None:
             self._floor = float(scene.bounds()[0][1])
         floor = self._floor
-        points = []
+        view_projection = (camera.projection_matrix() @ camera.view_matrix()).T
+        visible = []      # clip-space points in front of the near plane whose hull holds what moved there
         for obj, gm in zip(scene.objects, self.meshes):
             if obj.animation is None:
                 continue
             for t in times:
                 world = (np.c_[gm.box_corners, np.ones(8)] @ obj.model_matrix(t).T)[:, :3]
-                points.append(world)
-                if sun[1] < -1e-6 and obj.cast_shadow:
-                    points.append(world + ((floor - world[:, 1]) / sun[1])[:, None] * sun)
-        if not points:
+                if sun[1] < -1e-6 and obj.cast_shadow:   # the box swept down to the floor: one convex volume
+                    world = np.concatenate([world, world + ((floor - world[:, 1]) / sun[1])[:, None] * sun])
+                visible.append(_clip_to_near(np.c_[world, np.ones(len(world))] @ view_projection,
+                                             camera.frustum.near))
+        clip = np.concatenate(visible) if visible else np.zeros((0, 4))
+        if not len(clip):
             return (0, 0, 0, 0)
-        clip = np.c_[np.concatenate(points), np.ones(sum(len(p) for p in points))] @ (
-            camera.projection_matrix() @ camera.view_matrix()).T
-        if (clip[:, 3] <= camera.frustum.near).any():
-            return (0, 0, w, h)
         ndc = clip[:, :2] / clip[:, 3:4]
         x0, x1 = (ndc[:, 0].min() + 1) / 2 * w - margin_px, (ndc[:, 0].max() + 1) / 2 * w + margin_px
         y0, y1 = (1 - ndc[:, 1].max()) / 2 * h - margin_px, (1 - ndc[:, 1].min()) / 2 * h + margin_px

@@ -292,3 +292,27 @@ def test_copy_texture_copies_depth_and_refuses_other_formats(ctx):
     assert np.allclose(values[4:, 8:], 0.25, atol=1e-6) and not np.allclose(values[:4], 0.25, atol=1e-6)
     with pytest.raises(ValueError, match="does not fit"):
         copy_texture(ctx, src, big, at=(9, 4))
+
+
+@pytest.mark.parametrize("eye, target, shows", [
+    ([0, 4, 2], [0, 0, -4], "all"),           # the box and its shadow in front
+    ([1.2, 1.5, -3.0], [4, 0.5, -2.5], "part"),  # the box's path and shadow reach behind the camera
+    ([3, 1.5, -4], [6, 1.5, -4], "none"),      # ... and lie wholly behind it
+])
+def test_moving_region_holds_every_pixel_that_changes_and_clips_what_lies_behind_the_camera(ctx, eye, target, shows):
+    """Between two times, a full render changes only inside moving_region. Where the animated box's path or its
+    shadow reaches behind the camera, the region is what lies in front of the near plane: less than the whole
+    image, and nothing when all of it is behind."""
+    r = DeferredRenderer(scene_from_dict(_shadowed_pair(True)), ctx)
+    cam = Camera.perspective(Pose.look_at(eye, target), 160, 90)
+    x, y, w, h = r.moving_region(cam, (0.0, 1.0))
+    a, b = r.render(cam, 0.0), r.render(cam, 1.0)
+    changed = (a.color != b.color).any(-1) | (a.object_id != b.object_id)
+    inside = np.zeros_like(changed)
+    inside[y:y + h, x:x + w] = True
+    assert changed.any() == (shows != "none")
+    assert not (changed & ~inside).any()
+    if shows == "part":
+        assert 0 < w * h < 160 * 90 * 0.8, (x, y, w, h)
+    if shows == "none":
+        assert w * h == 0
