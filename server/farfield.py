@@ -67,18 +67,17 @@ def range_grid_quads(camera: Camera, depth: np.ndarray, block: int, max_depth: f
     normal = unpack_normals(*pack_normals(-centre_ray)).astype(np.float64)   # as the client will see it
     centre_point = centre_ray * (centre_z / -centre_ray[:, 2])[:, None]
     d = np.einsum("ij,ij->i", normal, centre_point)
-    offsets = np.empty((len(ix), 4, 4))
-    for s in range(4):                       # sub-quad s (0 TL, 1 TR, 2 BL, 3 BR), corner c (same order)
-        for c in range(4):
-            a, b = (s & 1) + (c & 1), (s >> 1) + (c >> 1)
-            r = camera.image_rays(ix * block + a * half, jy * block + b * half)
-            t_surface = fine[2 * jy + b, 2 * ix + a] / -r[:, 2]
-            t_plane = d / np.minimum(np.einsum("ij,ij->i", normal, r), -1e-3)
-            offsets[:, s, c] = t_surface - t_plane
+    # the 16 offsets at once: sub-quad s (0 TL, 1 TR, 2 BL, 3 BR), corner c (same order), as row 4 s + c
+    s, c = np.divmod(np.arange(16), 4)
+    a, b = ((s & 1) + (c & 1))[:, None], ((s >> 1) + (c >> 1))[:, None]
+    r = camera.image_rays(ix * block + a * half, jy * block + b * half)              # (16, quads, 3)
+    t_surface = fine[2 * jy + b, 2 * ix + a] / -r[..., 2]
+    t_plane = d / np.minimum(np.einsum("ij,sij->si", normal, r), -1e-3)
+    offsets = np.ascontiguousarray((t_surface - t_plane).T)
     n = len(ix)
     return QuadSet(x=ix * block, y=jy * block, size_log2=np.full(n, int(np.log2(block))),
                    flattened=np.zeros(n, bool), alpha=np.zeros(n, bool), normal=normal.astype(np.float32),
-                   depth=centre_z.astype(np.float32), offsets=offsets.reshape(n, 16).astype(np.float16))
+                   depth=centre_z.astype(np.float32), offsets=offsets.astype(np.float16))
 
 
 class FarField:
