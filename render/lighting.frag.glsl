@@ -1,6 +1,13 @@
 #version 430
-// Lighting pass: Blinn-Phong with a PCF-shadowed sun and point lights; sRGB 8-bit output.
+// Lighting pass: Blinn-Phong with a PCF-shadowed sun and point lights; sRGB 8-bit output. It shades pixels with
+// geometry; the sky pass (render/sky.frag.glsl) colours the others, picked by depth (DeferredRenderer.lighting_pass).
+// With SKY_BRANCH it colours sky pixels itself, telling them by their position, for G-buffers whose depth does not
+// (a culled geometry pass's). llvmpipe runs both sides of that branch on every pixel.
 #include "camera.glsl"
+#include "sky.glsl"
+#ifndef SKY_BRANCH
+#define SKY_BRANCH 0
+#endif
 
 in vec2 v_uv;
 
@@ -47,12 +54,12 @@ vec3 tonemap(vec3 c) {
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     vec4 pos = texelFetch(u_position, px, 0);
+#if SKY_BRANCH
     if (is_sky(pos)) {
-        vec3 dir = normalize(mat3(u_inv_view) * view_ray(u_extents, 1.0, v_uv));
-        vec3 sky = mix(u_sky * 0.9, u_sky * vec3(0.75, 0.85, 1.1), clamp(dir.y, 0.0, 1.0));
-        f_color = vec4(pow(clamp(sky, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
+        f_color = vec4(sky_colour(u_inv_view, u_extents, u_sky, v_uv), 1.0);
         return;
     }
+#endif
     vec4 alb = texelFetch(u_albedo, px, 0);
     vec4 nrm = texelFetch(u_normal, px, 0);
     vec3 n = normalize(nrm.xyz);

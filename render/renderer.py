@@ -99,6 +99,7 @@ class GBuffer:
         self.color_fbo = ctx.framebuffer([self.color])
         self.color_depth_fbo = ctx.framebuffer([self.color], self.depth)    # lighting where geometry is
         self.camera: Camera | None = None
+        self.culled = False      # the last geometry pass was culled: its depth does not tell where geometry is
 
     def clear(self) -> None:
         self.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
@@ -266,8 +267,14 @@ class DeferredRenderer:
         ctx = self.ctx
         self.geometry_prog = MaterialProgram(ctx, HERE / "gbuffer.vert.glsl", HERE / "gbuffer.frag.glsl")
         self.shadow_prog = program(ctx, HERE / "shadow.vert.glsl", HERE / "shadow.frag.glsl")
+        # the lighting pass shades the pixels with geometry and the sky pass the others, picked by depth; a culled
+        # G-buffer's empty pixels are told by position instead, with the sky's colour in the lighting shader
         self.lighting_prog = program(ctx, HERE / "fullscreen.vert.glsl", HERE / "lighting.frag.glsl")
-        self.fullscreen = ctx.vertex_array(self.lighting_prog, [])
+        self.lighting_sky_prog = program(ctx, HERE / "fullscreen.vert.glsl", HERE / "lighting.frag.glsl",
+                                         SKY_BRANCH=1)
+        self.sky_prog = program(ctx, HERE / "fullscreen.vert.glsl", HERE / "sky.frag.glsl")
+        self._fullscreen = {prog: ctx.vertex_array(prog, [])
+                            for prog in (self.lighting_prog, self.lighting_sky_prog, self.sky_prog)}
         self.white = ctx.texture((1, 1), 4, bytes([255, 255, 255, 255]))
         self.meshes = [_GpuMesh(ctx, o.mesh, self.shadow_prog, self.white)
                        for o in scene.objects]
@@ -514,23 +521,27 @@ class DeferredRenderer:
         if excluded:
             gb.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=_gl_rect(exclude, gb.height))
         gb.camera = camera
+        gb.culled = cull is not None
         return gb
 
     def lighting_pass(self, gb: GBuffer, t: float, region: tuple[int, int, int, int] | None = None,
                       geometry_only: bool = False) -> None:
-        """Shade the G-buffer into its colour (only within `region`, as in `geometry_pass`, when given). With
-        `geometry_only`, only pixels with geometry are shaded and the rest is black: the depth test against the
-        G-buffer's depth skips them, where a branch in the shader would not save their cost on llvmpipe."""
+        """Shade the G-buffer into its colour (only within `region`, as in `geometry_pass`, when given): the pixels
+        with geometry, which the depth test against the G-buffer's depth picks (a branch in the shader would not save
+        their cost on llvmpipe), then the sky on the others (render/sky.frag.glsl). With `geometry_only` the rest is
+        black instead. In a culled G-buffer (`geometry_pass(cull=...)`, depth 0 where culled) the shader tells sky by
+        position, and without `geometry_only` shades every pixel."""
         camera = gb.camera
         self.render_shadows(t)
         scene, view = self.scene, camera.view_matrix()
-        prog = self.lighting_prog
-        fbo = gb.color_depth_fbo if geometry_only else gb.color_fbo
+        prog = self.lighting_sky_prog if gb.culled else self.lighting_prog
+        by_depth = geometry_only or not gb.culled
+        fbo = gb.color_depth_fbo if by_depth else gb.color_fbo
         if geometry_only:      # the colour only: the depth is the test's
             gb.color_fbo.clear(0.0, 0.0, 0.0, 1.0, viewport=None if region is None else _gl_rect(region, gb.height))
         fbo.use()
         fbo.scissor = None if region is None else _gl_rect(region, gb.height)
-        if geometry_only:
+        if by_depth:
             self.ctx.enable(moderngl.DEPTH_TEST)
             self.ctx.depth_func = ">"            # the far plane (u_z = 1) lies behind every pixel with geometry
             fbo.depth_mask = False
@@ -551,19 +562,23 @@ class DeferredRenderer:
         light_pos = np.array([at for _, at in lights] + [[0, 0, 0]] * pad, "f4")
         light_col = np.array([np.asarray(l.color) * l.intensity for l, _ in lights] + [[0, 0, 0]] * pad, "f4")
         light_rad = np.array([l.radius for l, _ in lights] + [1.0] * pad, "f4")
-        set_uniforms(prog, u_albedo=0, u_normal=1, u_position=2, u_shadow_map=3,
-                     u_inv_view=gl_matrix(np.linalg.inv(view)),
+        inv_view, sky = gl_matrix(np.linalg.inv(view)), tuple(float(c) for c in scene.sky)
+        set_uniforms(prog, u_albedo=0, u_normal=1, u_position=2, u_shadow_map=3, u_inv_view=inv_view,
                      u_extents=camera.frustum.unit_extents,
                      u_light_vp=gl_matrix(self.light_view_projection()),
                      u_sun_dir_view=tuple(float(c) for c in sun_dir),
                      u_sun_color=tuple(float(c) for c in np.asarray(scene.sun.color) * scene.sun.intensity),
-                     u_ambient=tuple(float(c) for c in scene.ambient), u_sky=tuple(float(c) for c in scene.sky),
+                     u_ambient=tuple(float(c) for c in scene.ambient), u_sky=sky,
                      u_shadow_texel=1.0 / self.shadow_size, u_num_lights=n,
                      u_light_pos=light_pos.tobytes(), u_light_color=light_col.tobytes(),
-                     u_light_radius=light_rad.tobytes(), u_z=1.0 if geometry_only else 0.0)
-        self.fullscreen.render(moderngl.TRIANGLES, vertices=3)
+                     u_light_radius=light_rad.tobytes(), u_z=1.0 if by_depth else 0.0)
+        self._fullscreen[prog].render(moderngl.TRIANGLES, vertices=3)
+        if not (geometry_only or gb.culled):
+            self.ctx.depth_func = "<="           # ... and the pixels left at the far plane, where nothing was drawn
+            set_uniforms(self.sky_prog, u_inv_view=inv_view, u_extents=camera.frustum.unit_extents, u_sky=sky, u_z=1.0)
+            self._fullscreen[self.sky_prog].render(moderngl.TRIANGLES, vertices=3)
         fbo.scissor = None
-        if geometry_only:
+        if by_depth:
             fbo.depth_mask = True
             self.ctx.depth_func = "<"
             self.ctx.disable(moderngl.DEPTH_TEST)

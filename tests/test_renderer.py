@@ -316,3 +316,19 @@ def test_moving_region_holds_every_pixel_that_changes_and_clips_what_lies_behind
         assert 0 < w * h < 160 * 90 * 0.8, (x, y, w, h)
     if shows == "none":
         assert w * h == 0
+
+
+def test_lighting_by_depth_then_the_sky_pass_gives_the_one_pass_image(courtyard_renderer):
+    """The lighting pass shades the pixels with geometry (picked by depth) and the sky pass the others: the same
+    image, to the bit, as the one pass whose shader tells sky by position, which culled G-buffers still use."""
+    r = courtyard_renderer
+    cam = Camera.perspective(Pose.look_at([0, 1.6, 6], [0, 3.5, 0]), 160, 90)
+    gb = r.geometry_pass(cam, 1.0)
+    sky = ~(gb.read_depth() < np.inf)
+    assert 0.05 < sky.mean() < 0.95
+    r.lighting_pass(gb, 1.0)
+    two_passes = gb.read_color()
+    gb.culled = True
+    r.lighting_pass(gb, 1.0)
+    assert np.array_equal(gb.read_color(), two_passes)
+    assert len(np.unique(two_passes[sky].reshape(-1, 3), axis=0)) > 1      # the sky's gradient, not one colour
