@@ -237,7 +237,7 @@ def _clip_to_near(clip: np.ndarray, near: float) -> np.ndarray:
     if not len(behind) or not len(front):
         return front
     a, b = front[:, None, :], behind[None, :, :]
-    s = (a[..., 3] - near) / (a[..., 3] - b[..., 3])             # > 0 and <= 1: w falls from >= near to < near
+    s = (a[..., 3] - near) / (a[..., 3] - b[..., 3])             # in [0, 1): w falls from >= near to < near
     return np.concatenate([front, (a + s[..., None] * (b - a)).reshape(-1, 4)])
 
 
