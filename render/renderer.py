@@ -377,7 +377,7 @@ class DeferredRenderer:
         if self._floor is None:
             self._floor = float(scene.bounds()[0][1])
         floor = self._floor
-        view_projection = (camera.projection_matrix() @ camera.view_matrix()).T
+        view_projection = camera.view_projection().T
         visible = []      # clip-space points in front of the near plane whose hull holds what moved there
         for obj, gm in zip(scene.objects, self.meshes):
             if obj.animation is None:
@@ -426,7 +426,7 @@ class DeferredRenderer:
 
     def _box_clip(self, camera: Camera, t: float) -> np.ndarray:
         """(n_objects, 8, 4): each object's bounding-box corners at time t in `camera`'s clip space."""
-        return self._objects_at(t).boxes @ (camera.projection_matrix() @ camera.view_matrix()).T
+        return self._objects_at(t).boxes @ camera.view_projection().T
 
     def visible_objects(self, camera: Camera, t: float) -> np.ndarray:
         """(n_objects,) bools: the objects whose bounding box is not wholly outside one plane of the camera's

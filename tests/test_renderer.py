@@ -190,7 +190,6 @@ def test_objects_outside_the_frustum_are_skipped_without_changing_the_image(cour
                                                      zip(courtyard_renderer.scene.objects, shown) if s}
 
 
-
 def test_object_boxes_follow_the_animated_objects_from_time_to_time(courtyard_renderer):
     """The objects' model matrices and the frustum test's world boxes are kept per time: an animated object's are
     worked out again for every new t (a frame's passes share them), a static object's never change."""
