@@ -167,10 +167,10 @@ def test_a_layer_kept_from_the_last_build_is_not_rebuilt_wherever_it_stands(ctx,
 
 
 def test_quads_on_one_surface_draw_as_rectangles(ctx):
-    """1-pixel quads on two planes (x < 40 and x >= 40) in a 64 x 8 layer are drawn as five rectangles: rows end
-    where the surface changes and at every 16th pixel, the 8 rows of each stack into one. The view from a nearby
-    pose has the same depths and colours as the quads drawn one by one (the merged layer drawn from its packed
-    indices)."""
+    """With the strict test (planes and normals, no parallax bound), 1-pixel quads on two planes (x < 40 and
+    x >= 40) in a 64 x 8 layer are drawn as five rectangles: rows end where the surface changes and at every 16th
+    pixel, the 8 rows of each stack into one. The view from a nearby pose has the same depths and colours as the
+    quads drawn one by one (the merged layer drawn from its packed indices)."""
     rng = np.random.default_rng(5)
     w, h = 64, 8
     camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
@@ -183,7 +183,7 @@ def test_quads_on_one_surface_draw_as_rectangles(ctx):
     images = {}
     for min_run_quads in (None, 0):
         mesh = QuadMesh(ctx)
-        mesh.min_run_quads = min_run_quads
+        mesh.min_run_quads, mesh.run_parallax_px = min_run_quads, 0.0
         mesh.build([MeshLayer(quads, camera, (0, 0, w, h))], (w, h))
         view.render(mesh, eye, atlas)
         images[min_run_quads] = live_triangles(mesh)[0], (view.read_color(), view.read_depth())
@@ -194,6 +194,54 @@ def test_quads_on_one_surface_draw_as_rectangles(ctx):
     assert np.isfinite(depth).mean() > 0.7
     np.testing.assert_allclose(run_depth, depth, rtol=1e-4)
     assert (run_colour == colour).all(axis=-1).mean() > 0.995
+
+
+def rippled_quads(rng, camera: Camera, amplitude: float, frequency: float) -> QuadSet:
+    """A flattened 1-pixel quad per pixel of `camera` on the wall z = -4 + amplitude * sin(frequency * x) (view
+    space, x in metres), each through the wall's point on its centre ray, its normal the wall's turned by up to
+    5 degrees at random (as a detailed scene's are, pixel to pixel); where x > 0.8 the wall steps 0.5 m nearer."""
+    w, h = camera.width, camera.height
+    y, x = (c.ravel() for c in np.mgrid[0:h, 0:w])
+    ray = camera.image_rays(x + 0.5, y + 0.5)
+    z = np.full(len(x), -4.0)
+    for _ in range(30):   # where the centre ray meets the wall: fixed-point iteration on z
+        wx = ray[:, 0] / -ray[:, 2] * -z
+        z = -4.0 + amplitude * np.sin(frequency * wx) + np.where(wx > 0.8, 0.5, 0.0)
+    slope = amplitude * frequency * np.cos(frequency * wx)       # dz/dx of the wall
+    normal = np.column_stack([-slope, np.zeros(len(x)), np.ones(len(x))])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal += rng.normal(scale=np.radians(5.0) / np.sqrt(3), size=normal.shape)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    return QuadSet(x=x, y=y, size_log2=np.zeros(len(x), int), flattened=np.ones(len(x), bool),
+                   alpha=np.zeros(len(x), bool), normal=normal, depth=-z, offsets=np.zeros((0, OFFSETS_PER_QUAD)))
+
+
+@pytest.mark.parametrize("amplitude, frequency", [(0.002, 4.0), (0.1, 8.0)],
+                         ids=["bumps below the bound", "curves beyond it"])
+def test_runs_within_the_parallax_bound(ctx, amplitude, frequency):
+    """With the parallax bound (the default), 1-pixel quads on a wall whose normals turn from pixel to pixel (which
+    the strict test never merges) are drawn as far fewer triangles, yet every pixel's depth at the layer's own
+    pose lies so close to the quads' own that, seen from RUN_PARALLAX_M beside it, it moves at most about
+    run_parallax_px pixels: a rectangle that would break that bound (on the curving wall) is drawn as rows or
+    quads, and the 0.5 m step is never bridged."""
+    from quadcast.render.quadmesh import RUN_PARALLAX_M
+    w, h = 160, 90
+    camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
+    quads = rippled_quads(np.random.default_rng(11), camera, amplitude, frequency)
+    view = MeshView(ctx, w, h, depth_only=True)
+    drawn = {}
+    for bound in (None, 0.0, 0.5):
+        mesh = QuadMesh(ctx)
+        mesh.min_run_quads, mesh.run_parallax_px = (None, 0.0) if bound is None else (0, bound)
+        mesh.build([MeshLayer(quads, camera, (0, 0, w, h))], (w, h))
+        view.render(mesh, camera)
+        drawn[bound] = len(live_triangles(mesh)[0]), view.read_depth()
+    (by_quad, truth), (strict, _), (bounded, depth) = drawn[None], drawn[0.0], drawn[0.5]
+    assert np.isfinite(truth).all() and np.isfinite(depth).all()
+    moved = min(camera.focal_px) * RUN_PARALLAX_M * np.abs(depth - truth) / truth ** 2
+    assert moved.max() <= 0.5 * 1.01
+    assert bounded < strict / (10 if amplitude < 0.01 else 1.5)
+    assert (np.abs(depth - truth) < 0.25).all()     # the step (0.5 m) stays a step
 
 
 def test_depth_only_view_gives_the_colour_views_depths(ctx):
