@@ -198,7 +198,7 @@ def test_quads_on_one_surface_draw_as_rectangles(ctx):
 
 def rippled_quads(rng, camera: Camera, amplitude: float, frequency: float) -> QuadSet:
     """A flattened 1-pixel quad per pixel of `camera` on the wall z = -4 + amplitude * sin(frequency * x) (view
-    space, x in metres), each through the wall's point on its centre ray, its normal the wall's turned by up to
+    space, x in metres), each through the wall's point on its centre ray, its normal the wall's turned by about
     5 degrees at random (as a detailed scene's are, pixel to pixel); where x > 0.8 the wall steps 0.5 m nearer."""
     w, h = camera.width, camera.height
     y, x = (c.ravel() for c in np.mgrid[0:h, 0:w])
@@ -220,7 +220,7 @@ def rippled_quads(rng, camera: Camera, amplitude: float, frequency: float) -> Qu
                          ids=["bumps below the bound", "curves beyond it"])
 def test_runs_within_the_parallax_bound(ctx, amplitude, frequency):
     """With the parallax bound (the default), 1-pixel quads on a wall whose normals turn from pixel to pixel (which
-    the strict test never merges) are drawn as far fewer triangles, yet every pixel's depth at the layer's own
+    the strict test seldom merges) are drawn as far fewer triangles, yet every pixel's depth at the layer's own
     pose lies so close to the quads' own that, seen from RUN_PARALLAX_M beside it, it moves at most about
     run_parallax_px pixels: a rectangle that would break that bound (on the curving wall) is drawn as rows or
     quads, and the 0.5 m step is never bridged."""
@@ -236,7 +236,7 @@ def test_runs_within_the_parallax_bound(ctx, amplitude, frequency):
         mesh.build([MeshLayer(quads, camera, (0, 0, w, h))], (w, h))
         view.render(mesh, camera)
         drawn[bound] = len(live_triangles(mesh)[0]), view.read_depth()
-    (by_quad, truth), (strict, _), (bounded, depth) = drawn[None], drawn[0.0], drawn[0.5]
+    (_, truth), (strict, _), (bounded, depth) = drawn[None], drawn[0.0], drawn[0.5]
     assert np.isfinite(truth).all() and np.isfinite(depth).all()
     moved = min(camera.focal_px) * RUN_PARALLAX_M * np.abs(depth - truth) / truth ** 2
     assert moved.max() <= 0.5 * 1.01
