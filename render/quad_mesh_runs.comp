@@ -152,10 +152,9 @@ void main() {
     if (u_parallax > 0.0) {
         // the rectangle if every quad of it lies within the bound of it; else each row's run if its quads lie
         // within the bound of that, else each quad alone
-        uint last = run_last[k];
-        if (!fits(k, last, bottom, run_last[bottom])) {
+        if (!fits(k, run_last[k], bottom, run_last[bottom])) {
             for (uint y = p.y; y <= places[bottom].y; y += size) {
-                uint head = (grid[cell(p.x, y, s)] & PLACE) - 1u;
+                uint head = (grid[cell(p.x, y, s)] & PLACE) - 1u, last = run_last[head];
                 bool row = fits(head, last, head, last);
                 for (uint x = p.x; x <= places[last].x; x += size) {
                     uint m = (grid[cell(x, y, s)] & PLACE) - 1u;
@@ -163,7 +162,6 @@ void main() {
                     else if (m != head) empty(places[m].w);
                 }
                 if (row) draw(places[head].w, places[head].w, places[last].w, places[head].w, places[last].w);
-                if (y + size <= places[bottom].y) last = run_last[(grid[cell(p.x, y + size, s)] & PLACE) - 1u];
             }
             return;
         }

@@ -190,13 +190,16 @@ def _vertex_places(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class QuadMesh:
     """GPU buffers holding the layered mesh; `build` refills them (the layers that changed), `draw` renders them."""
 
-    def __init__(self, ctx: moderngl.Context):
+    def __init__(self, ctx: moderngl.Context, run_parallax_px: float = RUN_PARALLAX_PX):
+        """`run_parallax_px`: the runs' bound (see the module's doc); 0, the strict test. The servers' model of a
+        client's mesh takes 0: their residual frames' change test is relative in depth and would count the client's
+        half-pixel approximation of far surfaces as changed."""
         self.ctx = ctx
         self.builders = {flat: compute(ctx, HERE / "quad_mesh.comp", FLATTENED=int(flat)) for flat in (True, False)}
         self.eraser = compute(ctx, HERE / "quad_mesh_erase.comp")
         self.runs = [compute(ctx, HERE / "quad_mesh_runs.comp", PASS=k) for k in range(5)]
         self.min_run_quads = MIN_RUN_QUADS   # 0 merges every layer; None none
-        self.run_parallax_px = RUN_PARALLAX_PX   # 0: the runs' strict test (planes and normals)
+        self.run_parallax_px = float(run_parallax_px)
         self._scratch_buffers: dict[str, moderngl.Buffer] = {}   # the runs' grid and lists (_scratch)
         # the colour draws sample the atlas's planes (atlas_colour.glsl); the "_rgb" ones an RGBA texture
         self.programs = {name + suffix: program(ctx, HERE / f"{vertex}.vert.glsl", HERE / f"{fragment}.frag.glsl",

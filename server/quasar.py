@@ -117,10 +117,7 @@ class QuasarServer(MethodServer):
         self.atlas = AtlasComposer(self.ctx, self.layout)
         self.encoder = AtlasEncoder(self.layout.width, self.layout.height, s.video)
         self.cache = QuadCache(s.width, s.height)
-        self.mesh = QuadMesh(self.ctx)
-        # the runs' strict test: the client draws its cache within half a pixel of this (QuadMesh.run_parallax_px),
-        # which the residual frames' change test, relative in depth, would count as changed far away
-        self.mesh.run_parallax_px = 0.0
+        self.mesh = QuadMesh(self.ctx, run_parallax_px=0.0)   # the strict runs (QuadMesh's doc says why)
         self.mesh_view = MeshView(self.ctx, s.width, s.height, depth_only=True)
         self.frame_id = 0
         self.reference_id = -1

@@ -9,7 +9,7 @@ import pytest
 from quadcast.protocol.quads import OFFSETS_PER_QUAD, QuadSet
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.quadcache import QuadCache
-from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
+from quadcast.render.quadmesh import RUN_PARALLAX_M, MeshLayer, MeshView, QuadMesh
 
 
 def camera_facing_quads(rng, n, width, height, max_size_log2):
@@ -224,7 +224,6 @@ def test_runs_within_the_parallax_bound(ctx, amplitude, frequency):
     pose lies so close to the quads' own that, seen from RUN_PARALLAX_M beside it, it moves at most about
     run_parallax_px pixels: a rectangle that would break that bound (on the curving wall) is drawn as rows or
     quads, and the 0.5 m step is never bridged."""
-    from quadcast.render.quadmesh import RUN_PARALLAX_M
     w, h = 160, 90
     camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
     quads = rippled_quads(np.random.default_rng(11), camera, amplitude, frequency)
