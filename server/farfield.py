@@ -18,7 +18,7 @@ from quadcast.protocol.quads import LayerKind, QuadLayer, QuadSet, pack_normals,
 from quadcast.render.camera import Camera, Frustum, Pose
 from quadcast.render.renderer import DeferredRenderer, GBuffer
 
-__all__ = ["FACE_DIRECTIONS", "FarField", "face_cameras", "range_grid_quads"]
+__all__ = ["FACE_DIRECTIONS", "FarField", "face_cameras", "range_grid_faces", "range_grid_quads"]
 
 # Each face: (the direction it looks at, its up vector), world space (+Y up).
 FACE_DIRECTIONS = (((1, 0, 0), (0, 1, 0)), ((-1, 0, 0), (0, 1, 0)), ((0, 1, 0), (0, 0, 1)),
@@ -45,39 +45,48 @@ def range_grid_quads(camera: Camera, depth: np.ndarray, block: int, max_depth: f
     """One continuous surface over a face: `block`-pixel quads whose corners lie, along their rays, at the
     farthest view depth (at most `max_depth`; sky counts as `max_depth`) within a block of each grid corner;
     the lattice points between corners are interpolated bilinearly in view depth."""
-    h, w = depth.shape
+    return range_grid_faces(camera, np.asarray(depth)[None], block, max_depth)[0]
+
+
+def range_grid_faces(camera: Camera, depths: np.ndarray, block: int, max_depth: float) -> list[QuadSet]:
+    """`range_grid_quads` of several faces at once: `depths` (faces, h, w), each seen by a camera with `camera`'s
+    frustum and size (a cube map's faces), whose view-space rays are the same: they are worked out once."""
+    f, h, w = depths.shape
     if w % block or h % block or block & (block - 1):
         raise ValueError(f"far field: a {w}x{h} face is not a whole number of {block}-pixel blocks (a power of 2)")
     gx, gy = w // block, h // block
-    z = np.where(np.isfinite(depth), np.minimum(depth, max_depth), max_depth)
-    blocks = z.reshape(gy, block, gx, block).max(axis=(1, 3))
-    padded = np.pad(blocks, 1, mode="edge")
-    corners = np.maximum.reduce([padded[:-1, :-1], padded[:-1, 1:], padded[1:, :-1], padded[1:, 1:]])  # (gy+1, gx+1)
+    z = np.where(np.isfinite(depths), np.minimum(depths, max_depth), max_depth)
+    blocks = z.reshape(f, gy, block, gx, block).max(axis=(2, 4))
+    padded = np.pad(blocks, ((0, 0), (1, 1), (1, 1)), mode="edge")
+    corners = np.maximum.reduce([padded[:, :-1, :-1], padded[:, :-1, 1:], padded[:, 1:, :-1],
+                                 padded[:, 1:, 1:]])                                          # (f, gy+1, gx+1)
     # Depth at the 3x3 lattice of every quad (half-block steps): bilinear between its corners.
-    fine = np.empty((2 * gy + 1, 2 * gx + 1))
-    fine[::2, ::2] = corners
-    fine[1::2, ::2] = 0.5 * (corners[:-1] + corners[1:])
-    fine[:, 1::2] = 0.5 * (fine[:, :-2:2] + fine[:, 2::2])
+    fine = np.empty((f, 2 * gy + 1, 2 * gx + 1))
+    fine[:, ::2, ::2] = corners
+    fine[:, 1::2, ::2] = 0.5 * (corners[:, :-1] + corners[:, 1:])
+    fine[:, :, 1::2] = 0.5 * (fine[:, :, :-2:2] + fine[:, :, 2::2])
     jy, ix = np.mgrid[0:gy, 0:gx]
     ix, jy = ix.ravel(), jy.ravel()
     half = block / 2
     # The plane of each quad faces the camera through the quad's centre, at the centre's lattice depth.
-    centre_z = fine[2 * jy + 1, 2 * ix + 1]
+    centre_z = fine[:, 2 * jy + 1, 2 * ix + 1]                                                # (f, quads)
     centre_ray = camera.image_rays((ix + 0.5) * block, (jy + 0.5) * block)
     normal = unpack_normals(*pack_normals(-centre_ray)).astype(np.float64)   # as the client will see it
-    centre_point = centre_ray * (centre_z / -centre_ray[:, 2])[:, None]
-    d = np.einsum("ij,ij->i", normal, centre_point)
+    centre_point = centre_ray * (centre_z / -centre_ray[:, 2])[..., None]
+    d = np.stack([np.einsum("ij,ij->i", normal, p) for p in centre_point])
     # the 16 offsets at once: sub-quad s (0 TL, 1 TR, 2 BL, 3 BR), corner c (same order), as row 4 s + c
     s, c = np.divmod(np.arange(16), 4)
     a, b = ((s & 1) + (c & 1))[:, None], ((s >> 1) + (c >> 1))[:, None]
     r = camera.image_rays(ix * block + a * half, jy * block + b * half)              # (16, quads, 3)
-    t_surface = fine[2 * jy + b, 2 * ix + a] / -r[..., 2]
-    t_plane = d / np.minimum(np.einsum("ij,sij->si", normal, r), -1e-3)
-    offsets = np.ascontiguousarray((t_surface - t_plane).T)
+    t_surface = fine[:, 2 * jy + b, 2 * ix + a] / -r[..., 2]
+    t_plane = d[:, None, :] / np.minimum(np.einsum("ij,sij->si", normal, r), -1e-3)
+    offsets = (t_surface - t_plane).transpose(0, 2, 1).astype(np.float16)
     n = len(ix)
-    return QuadSet(x=ix * block, y=jy * block, size_log2=np.full(n, int(np.log2(block))),
-                   flattened=np.zeros(n, bool), alpha=np.zeros(n, bool), normal=normal.astype(np.float32),
-                   depth=centre_z.astype(np.float32), offsets=offsets.astype(np.float16))
+    normal32 = normal.astype(np.float32)
+    return [QuadSet(x=ix * block, y=jy * block, size_log2=np.full(n, int(np.log2(block))),
+                    flattened=np.zeros(n, bool), alpha=np.zeros(n, bool), normal=normal32.copy(),
+                    depth=centre_z[k].astype(np.float32), offsets=np.ascontiguousarray(offsets[k]))
+            for k in range(f)]
 
 
 class FarField:
@@ -89,18 +98,29 @@ class FarField:
         self.cameras: list[Camera] = []
 
     def render(self, position, t: float, near: float, far: float) -> None:
-        """The six faces at `position`, time `t` (kept on the GPU until the next call)."""
+        """The six faces at `position`, time `t` (kept on the GPU until the next call): `draw_geometry`, then
+        `light`."""
+        self.draw_geometry(position, t, near, far)
+        self.light(t)
+
+    def draw_geometry(self, position, t: float, near: float, far: float) -> None:
+        """The six faces' geometry passes; `light` lights them. All six first, so that llvmpipe rasterizes each
+        face while the next is drawn (see QuasarServer.encode)."""
         self.cameras = face_cameras(position, self.size, near, far)
         for camera, gb in zip(self.cameras, self.gbuffers):
-            self.renderer.gbuffer(camera, t, target=gb)
+            self.renderer.geometry_pass(camera, t, target=gb)
+
+    def light(self, t: float) -> None:
+        """The six faces' lighting passes, after `draw_geometry`."""
+        for gb in self.gbuffers:
+            self.renderer.lighting_pass(gb, t)
 
     def layers(self, rects) -> list[QuadLayer]:
         """The faces' quad layers, their colour at `rects` in the atlas."""
-        out = []
-        for camera, gb, rect in zip(self.cameras, self.gbuffers, rects):
-            quads = range_grid_quads(camera, gb.read_depth(), self.block, self.max_depth)
-            out.append(QuadLayer(LayerKind.FAR, self.size, self.size, camera.to_array(), rect, quads))
-        return out
+        depths = np.stack([gb.read_depth() for gb in self.gbuffers])
+        faces = range_grid_faces(self.cameras[0], depths, self.block, self.max_depth)   # one frustum and size
+        return [QuadLayer(LayerKind.FAR, self.size, self.size, camera.to_array(), rect, quads)
+                for camera, rect, quads in zip(self.cameras, rects, faces)]
 
     @property
     def colors(self):

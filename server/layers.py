@@ -210,13 +210,22 @@ class LayerRenderer:
     def hidden_camera(self, camera: Camera) -> Camera:
         return resized(camera, *self.hidden_size)
 
+    def draw_visible(self, camera: Camera, t: float) -> GBuffer:
+        """The visible layer's geometry pass alone, for a caller that draws other views' geometry before
+        `render(..., visible_drawn=True)` lights it (QuasarServer.encode)."""
+        return self.renderer.geometry_pass(camera, t, target=self.visible)
+
     def render(self, camera: Camera, t: float, viewcell_radius: float, connectivity: float = 0.001,
-               max_radius_deg: float = 5.9) -> list[GBuffer]:
+               max_radius_deg: float = 5.9, visible_drawn: bool = False) -> list[GBuffer]:
         """The visible layer (at the camera's size) and the hidden layers (at `hidden_size`, seen by
         `hidden_camera(camera)`). A hidden fragment is searched for a visible edge within the disc it can shift
-        by inside the view sphere, at most `max_radius_deg` of the view across."""
+        by inside the view sphere, at most `max_radius_deg` of the view across. `visible_drawn`: `draw_visible`
+        already drew the visible layer's geometry (same camera and time)."""
         r = self.renderer
-        layers = [r.gbuffer(camera, t, target=self.visible)]
+        if not visible_drawn:
+            self.draw_visible(camera, t)
+        r.lighting_pass(self.visible, t)
+        layers = [self.visible]
         if not self.hidden:
             return layers
         small = self.hidden_camera(camera)

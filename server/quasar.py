@@ -246,12 +246,17 @@ class QuasarServer(MethodServer):
         is_reference = self._needs_reference(camera)
 
         t0 = time.perf_counter()
-        gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity)
+        # Every view's geometry pass first (the sun's shadow map before them), then the passes that sample them
+        # (lighting, the peel). Sampling what a pass drew makes llvmpipe wait until it is rasterized; in this order
+        # its threads rasterize the earlier views while the later ones are drawn, where a view lit right after its
+        # geometry pass waited for that pass alone. The same images in either order.
+        self.renderer.render_shadows(t)
+        self.layer_renderer.draw_visible(camera, t)
         wide_cam = wide_camera(camera, self._wide_fovy(t), s.wide_scale)
         # Lit only where geometry is: the wide view gets no sky quads (the far field shows the sky). Nor is it drawn
         # where it makes no quads, inside the main view (its colour there is black in the atlas).
-        wide_gb = self.renderer.gbuffer(wide_cam, t, target=self.wide_gbuffer, geometry_only=not s.hidden.sky,
-                                        exclude=inner_rect(wide_cam, camera) if self.skip_wide_inner else None)
+        wide_gb = self.renderer.geometry_pass(wide_cam, t, target=self.wide_gbuffer,
+                                              exclude=inner_rect(wide_cam, camera) if self.skip_wide_inner else None)
         # The reference view is rendered again where the scene moved since it was last rendered (the animated
         # objects and their shadows, §3.5.2: to find what changed, and for its current colour); elsewhere, and in a
         # static scene everywhere, what the reference frame rendered is still exact.
@@ -259,11 +264,18 @@ class QuasarServer(MethodServer):
         if not is_reference:
             region = self.renderer.moving_region(self.reference_camera, (self._reference_time, t))
             if region[2] and region[3]:
-                ref_gb = self.renderer.gbuffer(self.reference_camera, t, target=self.reference_gbuffer,
-                                               region=region)
+                ref_gb = self.renderer.geometry_pass(self.reference_camera, t, target=self.reference_gbuffer,
+                                                     region=region)
                 self._reference_time = t
-        if is_reference and self.far_field is not None:
-            self.far_field.render(camera.pose.position, t, camera.frustum.near, camera.frustum.far)
+        far_field = self.far_field if is_reference else None
+        if far_field is not None:
+            far_field.draw_geometry(camera.pose.position, t, camera.frustum.near, camera.frustum.far)
+        gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity, visible_drawn=True)
+        self.renderer.lighting_pass(wide_gb, t, geometry_only=not s.hidden.sky)
+        if ref_gb is not None:
+            self.renderer.lighting_pass(ref_gb, t, region)
+        if far_field is not None:
+            far_field.light(t)
         ctx.finish()
         ms["gbuffers"] = (time.perf_counter() - t0) * 1e3
 

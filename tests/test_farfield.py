@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from quadcast.protocol.quads import LayerKind, QuadFrame, decode_quad_frame, encode_quad_frame
 from quadcast.render.camera import Camera, Pose
-from quadcast.server.farfield import face_cameras, range_grid_quads
+from quadcast.server.farfield import face_cameras, range_grid_faces, range_grid_quads
 
 
 def _corner_points(camera: Camera, quads) -> dict:
@@ -57,6 +57,24 @@ def test_range_grid_is_one_continuous_surface_at_the_farthest_depth():
         window = depth[max(0, 16 * j - 16):16 * j + 16, max(0, 16 * i - 16):16 * i + 16]
         expect = min(90.0, float(np.max(np.where(np.isfinite(window), window, 90.0))))
         assert -pts[0][2] == pytest.approx(expect, abs=tolerance + 1e-3 * expect), (px, py)
+
+
+def test_faces_worked_out_together_are_each_face_alone():
+    """`range_grid_faces` (the six faces at once, as FarField.layers makes them) gives every face the very quads
+    `range_grid_quads` gives it alone: batching shares the rays, never another face's depths."""
+    cams = face_cameras((0.5, 1.6, -2.0), 32, 0.1, 100.0)
+    rng = np.random.default_rng(3)
+    depths = rng.uniform(0.5, 120.0, (6, 32, 32)).astype(np.float32)
+    depths[2, :10] = np.inf                                                  # sky on one face
+    depths[4] = 7.0                                                          # one flat face
+    together = range_grid_faces(cams[0], depths, 16, 90.0)
+    assert len(together) == 6
+    for cam, depth, quads in zip(cams, depths, together):
+        alone = range_grid_quads(cam, depth, 16, 90.0)
+        for name in ("x", "y", "size_log2", "flattened", "alpha", "normal", "depth", "offsets"):
+            assert np.array_equal(getattr(quads, name), getattr(alone, name)), name
+    with pytest.raises(ValueError, match="whole number of 16-pixel blocks"):
+        range_grid_faces(cams[0], depths[:, :30, :30], 16, 90.0)
 
 
 def test_far_layers_round_trip_the_quad_blob():

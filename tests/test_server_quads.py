@@ -192,6 +192,26 @@ def test_one_pass_peel_gives_the_layers_of_a_pass_a_layer(ctx, courtyard_rendere
     assert limited.list_capacity < stored <= limited.last_list_fragments
 
 
+def test_layers_lit_after_other_views_are_drawn_are_the_same(ctx, courtyard_renderer):
+    """QuasarServer.encode draws the visible layer's geometry (`draw_visible`), then other views' geometry, then
+    `render(..., visible_drawn=True)`: the layers are those `render` alone makes, texel for texel."""
+    from quadcast.render.renderer import GBuffer
+    from quadcast.server.layers import LayerRenderer
+    cam = Camera.perspective(Pose.look_at([1.5, 1.6, 5], [-1, 1.5, 0]), 192, 108)
+    want = _layer_images(LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54)), cam)
+    layers = LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54))
+    layers.draw_visible(cam, 0.0)
+    other = GBuffer(ctx, 120, 68)
+    courtyard_renderer.geometry_pass(Camera.perspective(Pose.look_at([0, 1.6, -6], [0, 1.5, 0]), 120, 68), 0.0,
+                                     target=other)
+    got = [(gb.read_depth(), gb.read_color(), gb.read_normal(), gb.read_depth_buffer(), gb.read_object_id())
+           for gb in layers.render(cam, 0.0, 0.5, visible_drawn=True)]
+    courtyard_renderer.lighting_pass(other, 0.0)
+    assert len(got) == len(want) == 4
+    for a, b in zip(got, want):
+        assert all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
 def test_atlas_copies_layers_of_its_rects_size_as_the_drawing_pass_draws_them(ctx, courtyard_renderer):
     """AtlasComposer copies a layer whose colour has its rect's size (glCopyImageSubData) and draws the others
     scaled: the atlas is the one the drawing pass makes for every layer."""
