@@ -41,8 +41,9 @@ FLAT_VERTICES, FULL_VERTICES = 4, 16     # a flattened quad is one quad of the m
 # edge, normals within ~2.6 degrees.
 MAX_RUN, MAX_STACK, RUN_TOLERANCE, RUN_MIN_COS = 16, 8, 1e-3, 0.999
 # With a parallax bound (QuadMesh.run_parallax_px > 0) "one surface" is looser: a rectangle is drawn where every quad
-# of it lies so close to it that, seen from RUN_PARALLAX_M beside the layer's camera (the view cell's radius, the
-# distance a reference frame is renewed at), no point moves more than run_parallax_px pixels; else its rows, else
+# of it lies so close to it that, seen from RUN_PARALLAX_M beside the layer's camera (the view cell's radius; at 30
+# frames/s the quasar server renews its reference within 5 frames, seldom that far away, and a slower server within
+# 1 m, where a point moves up to twice as far), no point moves more than run_parallax_px pixels; else its rows, else
 # its quads one by one. The pairs need only meet within that distance (no normals).
 RUN_PARALLAX_PX, RUN_PARALLAX_M = 0.5, 0.5
 MAX_RUN_GRID = 1 << 23   # grid cells (32 MiB): a larger layer is drawn quad by quad

@@ -30,7 +30,10 @@ class QuasarSettings:
     layers: int = 4                      # k: the visible layer + k-1 hidden layers
     viewcell_radius: float = 0.5         # metres
     reference_every: int = 5             # a reference frame every K frames ...
-    reference_distance: float = 0.5      # ... or when the pose moved this far (m) ...
+    # ... or when the pose moved this far (m) ... Twice the view cell's radius: a server too slow for the pose rate
+    # (the live demo's) sends fewer reference frames at 1 m than at 0.5, for fewer bits at about the same FLIP
+    # (lower in four of five runs); at 30 frames/s it seldom triggers (docs/speed.md, stop 47)
+    reference_distance: float = 1.0
     reference_angle_deg: float = 15.0    # ... or turned this much since the reference
     visible: QuadParams = field(default_factory=QuadParams)
     hidden: QuadParams = field(default_factory=lambda: QuadParams().relaxed())
