@@ -155,9 +155,9 @@ def test_peel_early_reject_keeps_the_layers_of_the_full_search(ctx, courtyard_re
         np.testing.assert_array_equal(fast.read_visible_max(level), want_level)
 
 
-def _layer_images(layers, cam):
+def _layer_images(layers, cam, visible_drawn=False):
     return [(gb.read_depth(), gb.read_color(), gb.read_normal(), gb.read_depth_buffer(), gb.read_object_id())
-            for gb in layers.render(cam, 0.0, 0.5)]
+            for gb in layers.render(cam, 0.0, 0.5, visible_drawn=visible_drawn)]
 
 
 def test_one_pass_peel_gives_the_layers_of_a_pass_a_layer(ctx, courtyard_renderer, monkeypatch):
@@ -195,7 +195,6 @@ def test_one_pass_peel_gives_the_layers_of_a_pass_a_layer(ctx, courtyard_rendere
 def test_layers_lit_after_other_views_are_drawn_are_the_same(ctx, courtyard_renderer):
     """QuasarServer.encode draws the visible layer's geometry (`draw_visible`), then other views' geometry, then
     `render(..., visible_drawn=True)`: the layers are those `render` alone makes, texel for texel."""
-    from quadcast.render.renderer import GBuffer
     from quadcast.server.layers import LayerRenderer
     cam = Camera.perspective(Pose.look_at([1.5, 1.6, 5], [-1, 1.5, 0]), 192, 108)
     want = _layer_images(LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54)), cam)
@@ -204,9 +203,7 @@ def test_layers_lit_after_other_views_are_drawn_are_the_same(ctx, courtyard_rend
     other = GBuffer(ctx, 120, 68)
     courtyard_renderer.geometry_pass(Camera.perspective(Pose.look_at([0, 1.6, -6], [0, 1.5, 0]), 120, 68), 0.0,
                                      target=other)
-    got = [(gb.read_depth(), gb.read_color(), gb.read_normal(), gb.read_depth_buffer(), gb.read_object_id())
-           for gb in layers.render(cam, 0.0, 0.5, visible_drawn=True)]
-    courtyard_renderer.lighting_pass(other, 0.0)
+    got = _layer_images(layers, cam, visible_drawn=True)
     assert len(got) == len(want) == 4
     for a, b in zip(got, want):
         assert all(np.array_equal(x, y) for x, y in zip(a, b))
