@@ -73,7 +73,7 @@ def range_grid_faces(camera: Camera, depths: np.ndarray, block: int, max_depth: 
     centre_ray = camera.image_rays((ix + 0.5) * block, (jy + 0.5) * block)
     normal = unpack_normals(*pack_normals(-centre_ray)).astype(np.float64)   # as the client will see it
     centre_point = centre_ray * (centre_z / -centre_ray[:, 2])[..., None]
-    d = np.stack([np.einsum("ij,ij->i", normal, p) for p in centre_point])
+    d = np.stack([np.einsum("ij,ij->i", normal, p) for p in centre_point])   # a face at a time: one face's sums
     # the 16 offsets at once: sub-quad s (0 TL, 1 TR, 2 BL, 3 BR), corner c (same order), as row 4 s + c
     s, c = np.divmod(np.arange(16), 4)
     a, b = ((s & 1) + (c & 1))[:, None], ((s >> 1) + (c >> 1))[:, None]
@@ -97,15 +97,10 @@ class FarField:
         self.gbuffers = [GBuffer(renderer.ctx, size, size) for _ in FACE_DIRECTIONS]
         self.cameras: list[Camera] = []
 
-    def render(self, position, t: float, near: float, far: float) -> None:
-        """The six faces at `position`, time `t` (kept on the GPU until the next call): `draw_geometry`, then
-        `light`."""
-        self.draw_geometry(position, t, near, far)
-        self.light(t)
-
     def draw_geometry(self, position, t: float, near: float, far: float) -> None:
-        """The six faces' geometry passes; `light` lights them. All six first, so that llvmpipe rasterizes each
-        face while the next is drawn (see QuasarServer.encode)."""
+        """The six faces' geometry passes at `position`, time `t` (kept on the GPU until the next call); `light`
+        lights them. All six first, so that llvmpipe rasterizes each face while the next is drawn (see
+        QuasarServer.encode)."""
         self.cameras = face_cameras(position, self.size, near, far)
         for camera, gb in zip(self.cameras, self.gbuffers):
             self.renderer.geometry_pass(camera, t, target=gb)

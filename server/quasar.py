@@ -270,15 +270,15 @@ class QuasarServer(MethodServer):
                 ref_gb = self.renderer.geometry_pass(self.reference_camera, t, target=self.reference_gbuffer,
                                                      region=region)
                 self._reference_time = t
-        far_field = self.far_field if is_reference else None
-        if far_field is not None:
-            far_field.draw_geometry(camera.pose.position, t, camera.frustum.near, camera.frustum.far)
+        fresh_far = self.far_field if is_reference else None    # rendered again on reference frames only
+        if fresh_far is not None:
+            fresh_far.draw_geometry(camera.pose.position, t, camera.frustum.near, camera.frustum.far)
         gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity, visible_drawn=True)
         self.renderer.lighting_pass(wide_gb, t, geometry_only=not s.hidden.sky)
         if ref_gb is not None:
             self.renderer.lighting_pass(ref_gb, t, region)
-        if far_field is not None:
-            far_field.light(t)
+        if fresh_far is not None:
+            fresh_far.light(t)
         ctx.finish()
         ms["gbuffers"] = (time.perf_counter() - t0) * 1e3
 
@@ -356,8 +356,8 @@ class QuasarServer(MethodServer):
                                     rect, hidden))
         wide = fill(quads(wide_gb, wide_cam, self.hidden_params, generator=self.wide_generator, inner=camera))
         layers.append(QuadLayer(LayerKind.WIDE, wide_cam.width, wide_cam.height, wide_cam.to_array(), L.wide, wide))
-        if is_reference and self.far_field is not None:
-            layers += self.far_field.layers(L.far)           # sent with reference frames; the client keeps them
+        if fresh_far is not None:
+            layers += fresh_far.layers(L.far)                # sent with reference frames; the client keeps them
         ms.update(quads=timings.quads, merge=timings.merge, gather=timings.gather)
 
         t0 = time.perf_counter()
