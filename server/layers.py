@@ -18,6 +18,7 @@ LIST_FRAGMENT_BYTES = 64              # server/peel_list_buffers.glsl's PeelFrag
 INITIAL_LIST_FRAGMENTS_PER_PIXEL = 2  # the one-pass peel's first room, grown by doubling as frames need
 MAX_LIST_FRAGMENTS_PER_PIXEL = 16     # its most (a mean over the hidden layers' pixels): beyond, a pass a layer
 MAX_LIST_BYTES = 256 << 20            # and at most this much memory
+CULL, RESTORE, BEHIND = 0, 1, 2       # the depth steps of server/peel_cull.frag.glsl (LayerRenderer._depth_step)
 
 
 def wide_camera(camera: Camera, fovy_deg: float = 120.0, scale: float = 0.5) -> Camera:
@@ -94,10 +95,16 @@ class LayerRenderer:
         self._peel_cull = program(self.ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "peel_cull.frag.glsl")
         self._peel_cull_vao = self.ctx.vertex_array(self._peel_cull, [])
         self._peel_cull_fbos: dict[int, moderngl.Framebuffer] = {}
+        # The one-pass peel's list is drawn with the depth test rejecting, before its shader runs, every fragment
+        # at or in front of the visible layer (BEHIND in peel_cull.frag.glsl), which its shader would discard at
+        # its first test; False: only those where the visible layer is empty (CULL). The same lists either way.
+        self.list_cull_visible = True
 
-    def _depth_step(self, depth: moderngl.Texture, position: moderngl.Texture, restore: bool) -> None:
-        """server/peel_cull.frag.glsl on `depth`: cull (depth 0 where `position` is empty) or restore (depth 1
-        there again)."""
+    def _depth_step(self, depth: moderngl.Texture, position: moderngl.Texture, step: int,
+                    behind: tuple[Camera, float] | None = None) -> None:
+        """server/peel_cull.frag.glsl on `depth`: CULL (depth 0 where `position` is empty), RESTORE (depth 1 there
+        again) or BEHIND (for the one-pass peel's list, drawn with the test GREATER: `behind` = (its camera, the
+        connectivity))."""
         fbo = self._peel_cull_fbos.get(depth.glo)
         if fbo is None:
             fbo = self._peel_cull_fbos[depth.glo] = self.ctx.framebuffer(depth_attachment=depth)
@@ -105,7 +112,11 @@ class LayerRenderer:
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "1"          # always: every pixel drawn takes the step's depth
         position.use(0)
-        set_uniforms(self._peel_cull, u_position=0, u_restore=restore, u_z=0.0)
+        if behind is not None:
+            camera, connectivity = behind
+            set_uniforms(self._peel_cull, u_near_far=(camera.frustum.near, camera.frustum.far),
+                         u_connectivity=float(connectivity))
+        set_uniforms(self._peel_cull, u_position=0, u_step=step, u_z=0.0)
         self._peel_cull_vao.render(moderngl.TRIANGLES, vertices=3)
         self.ctx.depth_func = "<"
 
@@ -131,14 +142,21 @@ class LayerRenderer:
                 self._grow_list(INITIAL_LIST_FRAGMENTS_PER_PIXEL * hw * hh)
             self._list_heads.bind_to_storage_buffer(0)
             self._list_fragments.bind_to_storage_buffer(1)
-            self._depth_step(self._list_depth, visible_position, restore=False)
+            # the test only (a fragment behind another is stored too), against the depth behind which the list's
+            # shader keeps fragments, or with `list_cull_visible` off against where the visible layer is empty
+            if self.list_cull_visible:
+                self._depth_step(self._list_depth, visible_position, BEHIND, (small, connectivity))
+            else:
+                self._depth_step(self._list_depth, visible_position, CULL)
             fbo = self._peel_cull_fbos[self._list_depth.glo]
-            fbo.depth_mask = False         # the test only: a fragment behind another is stored too
+            fbo.depth_mask = False
             fbo.use()
             ctx.enable(moderngl.DEPTH_TEST)
+            ctx.depth_func = ">" if self.list_cull_visible else "<"
             ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
             set_uniforms(self._peel_list, u_capacity=self.list_capacity, u_list_width=hw)
             self.renderer.draw_geometry(small, t, self._peel_list, closed_back_faces=not self.skip_closed_back_faces)
+            ctx.depth_func = "<"
             fbo.depth_mask = True
             ctx.memory_barrier()
             stored = int(np.frombuffer(self._list_heads.read(4), np.uint32)[0])
@@ -199,7 +217,7 @@ class LayerRenderer:
 
     def _cull_where_empty(self, prev_position: moderngl.Texture):
         """A cull step (render.renderer.CullFn) for a peel pass: depth 0 where `prev_position` holds nothing."""
-        return lambda depth: self._depth_step(depth, prev_position, restore=False)
+        return lambda depth: self._depth_step(depth, prev_position, CULL)
 
     def use_hidden_layers(self, count: int) -> None:
         """Render only the first ``count`` hidden layers (of those allocated) from the next frame on."""
@@ -262,7 +280,7 @@ class LayerRenderer:
             prev_position.use(4)
             r.geometry_pass(small, t, target=gb, prog=self.peel, cull=self._cull_where_empty(prev_position),
                             closed_back_faces=not self.skip_closed_back_faces)
-            self._depth_step(gb.depth, gb.position, restore=True)
+            self._depth_step(gb.depth, gb.position, RESTORE)
             r.lighting_pass(gb, t, geometry_only=True)    # the atlas needs no sky colour in hidden layers
             layers.append(gb)
             prev_position = gb.position
