@@ -3,6 +3,7 @@ residual frames (§3.5), the colour atlas as H.264 and the quads as a columnar z
 from __future__ import annotations
 
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -119,6 +120,10 @@ class QuasarServer(MethodServer):
         self.reference_gbuffer = GBuffer(self.ctx, s.width, s.height)
         self.atlas = AtlasComposer(self.ctx, self.layout)
         self.encoder = AtlasEncoder(self.layout.width, self.layout.height, s.video)
+        # The atlas is coded by x264 on a thread of its own while the quad passes run (it releases the GIL, and
+        # llvmpipe leaves cores idle between dispatches); False: coded in turn, after the quads. The same bytes.
+        self.code_video_beside_quads = True
+        self._video_thread: ThreadPoolExecutor | None = None
         self.cache = QuadCache(s.width, s.height)
         self.mesh = QuadMesh(self.ctx, run_parallax_px=0.0)   # the strict runs (QuadMesh's doc says why)
         self.mesh_view = MeshView(self.ctx, s.width, s.height, depth_only=True)
@@ -282,6 +287,63 @@ class QuasarServer(MethodServer):
         ctx.finish()
         ms["gbuffers"] = (time.perf_counter() - t0) * 1e3
 
+        # The atlas holds every layer's colour, all lit by now; its coding needs nothing the quad passes make.
+        t0 = time.perf_counter()
+        video_job = self._code_atlas(gbs, wide_gb, is_reference)
+        video_ms = (time.perf_counter() - t0) * 1e3
+        try:
+            payload = self._quads_and_geometry(camera, t, is_reference, gbs, wide_gb, wide_cam, ref_gb, region,
+                                               fresh_far, timings, ms)
+        except BaseException:
+            # x264 has taken this frame, which is never sent: the next frame is a reference frame (an IDR)
+            self._force_reference = True
+            video_job.exception()
+            raise
+        t0 = time.perf_counter()
+        video = video_job.result()
+        ms["video"] = video_ms + (time.perf_counter() - t0) * 1e3
+        frame_type, geometry, qframe = payload
+        stats = quad_stats(qframe, ms, cache_quads=len(self.cache))
+        payload = FramePayload(Method.QUASAR, self.frame_id, frame_type, self.reference_id, float(t),
+                               camera.pose.position, camera.pose.quat, video.data, geometry,
+                               self_contained=is_reference and video.keyframe, stats=stats)
+        self.frame_id += 1
+        return payload
+
+    def _code_atlas(self, gbs: list[GBuffer], wide_gb: GBuffer, is_reference: bool) -> Future:
+        """Compose this frame's colour atlas, read it back and code it: on the video thread
+        (`code_video_beside_quads`), else here. On a reference frame the visible layer becomes the reference view."""
+        L = self.layout
+        self.atlas.clear()
+        self.atlas.draw((gbs[0] if is_reference else self.reference_gbuffer).color, L.reference)
+        if not is_reference:
+            self.atlas.draw(gbs[0].color, L.current)
+        for gb, rect in zip(gbs[1:], L.hidden):
+            self.atlas.draw(gb.color, rect)
+        self.atlas.draw(wide_gb.color, L.wide)
+        if self.far_field is not None:                    # in every frame's atlas: the client samples it there
+            for color, rect in zip(self.far_field.colors, L.far):
+                self.atlas.draw(color, rect)
+        picture = self.atlas.read()
+        if self.code_video_beside_quads:
+            if self._video_thread is None:
+                self._video_thread = ThreadPoolExecutor(1, thread_name_prefix="quasar-x264")
+            # the encoder as it is now (apply_operating_point may replace it between frames, never during one)
+            return self._video_thread.submit(self.encoder.encode, picture, keyframe=is_reference)
+        job: Future = Future()
+        try:
+            job.set_result(self.encoder.encode(picture, keyframe=is_reference))
+        except Exception as exc:
+            job.set_exception(exc)
+        return job
+
+    def _quads_and_geometry(self, camera: Camera, t: float, is_reference: bool, gbs: list[GBuffer], wide_gb: GBuffer,
+                            wide_cam: Camera, ref_gb: GBuffer | None, region: tuple[int, int, int, int],
+                            fresh_far: FarField | None, timings: QuadTimings,
+                            ms: dict[str, float]) -> tuple[FrameType, bytes, QuadFrame]:
+        """The frame's quads for every layer, the client's cache kept (§3.5), and the geometry blob."""
+        s = self.s
+
         def quads(gb, cam, params, mask=None, generator=None, inner=None):
             q, tm = (generator or self.generator).generate(gb.position, gb.normal, cam, params, mask, inner)
             timings.add(tm)
@@ -365,27 +427,10 @@ class QuasarServer(MethodServer):
         qframe = QuadFrame(layers)
         geometry = encode_quad_frame(qframe, s.zstd_level, s.depth_bits)
         ms["zstd"] = (time.perf_counter() - t0) * 1e3
-
-        t0 = time.perf_counter()
-        self.atlas.clear()
-        self.atlas.draw(self.reference_gbuffer.color, L.reference)
-        if not is_reference:
-            self.atlas.draw(gbs[0].color, L.current)
-        for gb, rect in zip(gbs[1:], L.hidden):
-            self.atlas.draw(gb.color, rect)
-        self.atlas.draw(wide_gb.color, L.wide)
-        if self.far_field is not None:                    # in every frame's atlas: the client samples it there
-            for color, rect in zip(self.far_field.colors, L.far):
-                self.atlas.draw(color, rect)
-        video = self.encoder.encode(self.atlas.read(), keyframe=is_reference)
-        ms["video"] = (time.perf_counter() - t0) * 1e3
-
-        stats = quad_stats(qframe, ms, cache_quads=len(self.cache))
-        payload = FramePayload(Method.QUASAR, self.frame_id, frame_type, self.reference_id, float(t),
-                               camera.pose.position, camera.pose.quat, video.data, geometry,
-                               self_contained=is_reference and video.keyframe, stats=stats)
-        self.frame_id += 1
-        return payload
+        return frame_type, geometry, qframe
 
     def close(self) -> None:
+        if self._video_thread is not None:
+            self._video_thread.shutdown(wait=True)
+            self._video_thread = None
         self.encoder.close()

@@ -6,7 +6,7 @@ import av
 import numpy as np
 import pytest
 
-from quadcast.protocol.frame import decode_frame_payload
+from quadcast.protocol.frame import FrameType, decode_frame_payload
 from quadcast.protocol.quads import LayerKind, decode_quad_frame
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
@@ -190,6 +190,32 @@ def test_one_pass_peel_gives_the_layers_of_a_pass_a_layer(ctx, courtyard_rendere
     limited = LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54))
     check(limited)
     assert limited.list_capacity < stored <= limited.last_list_fragments
+
+
+def test_one_pass_list_drawn_behind_the_visible_layer_keeps_the_same_layers(ctx, courtyard_renderer):
+    """The one-pass peel's list is drawn against a depth just in front of the one behind which its shader keeps
+    fragments (peel_cull.frag.glsl's BEHIND step: the window depth of z0 (1 + connectivity), less a margin; 1 where
+    the visible layer is empty), so the depth test drops the visible surface's own fragments before the shader
+    runs. The same fragments are stored and the same layers made as with the cull step alone."""
+    from quadcast.server.layers import LayerRenderer
+    cam = Camera.perspective(Pose.look_at([1.5, 1.6, 5], [-1, 1.5, 0]), 192, 108)
+    plain = LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54))
+    plain.list_cull_visible = False
+    want = _layer_images(plain, cam)
+    behind = LayerRenderer(courtyard_renderer, 192, 108, 4, (96, 54))
+    got = _layer_images(behind, cam)
+    for a, b in zip(got, want):
+        assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert behind.last_list_fragments == plain.last_list_fragments > 0
+    # the step's depths: 1 where nothing is visible, else just in front of the kept fragments' depths
+    position = read_texture(behind.visible_small, 4, "f4")
+    stepped = read_texture(behind._list_depth, 1, "f4").astype(np.float64)
+    empty = ~(position[..., 3] > 0)
+    assert empty.any() and (~empty).mean() > 0.5 and np.all(stepped[empty] == 1.0)
+    n, f = cam.frustum.near, cam.frustum.far
+    z = np.minimum(-position[..., 2].astype(np.float64) * 1.001, f)[~empty]
+    window = 0.5 * ((f + n) / (f - n) - 2 * f * n / ((f - n) * z)) + 0.5
+    assert np.all(stepped[~empty] < window) and np.all(stepped[~empty] > window - 2e-6)
 
 
 def test_layers_lit_after_other_views_are_drawn_are_the_same(ctx, courtyard_renderer):
@@ -548,6 +574,34 @@ def test_wide_view_is_not_drawn_where_it_makes_no_quads(courtyard_renderer):
     assert skipped > 0                                  # objects wholly inside it were not drawn at all
     skipping.close()
     drawing.close()
+
+
+def test_video_coded_beside_the_quads_is_the_video_coded_after_them(courtyard_renderer):
+    """The atlas is coded by x264 on a thread of its own while the quad passes run: along a walk the server sends
+    the video and geometry bytes of a server that codes it after them. When the quads fail, the frame x264 took is
+    never sent, so the next frame is a reference frame (a keyframe), and the thread is gone after `close`."""
+    from quadcast.render.traces import resolve_trace
+    trace = resolve_trace("builtin:walk")
+    s = QuasarSettings(width=160, height=96, layers=2)
+    beside, after = QuasarServer(courtyard_renderer, s), QuasarServer(courtyard_renderer, s)
+    after.code_video_beside_quads = False
+    for t in (1.0, 1.1, 1.2, 1.3, 4.0, 4.1):
+        pose = Pose(*trace.pose_at(t))
+        a, b = beside.encode(pose, t), after.encode(pose, t)
+        assert (a.video, a.geometry, a.frame_type) == (b.video, b.geometry, b.frame_type), t
+    assert beside._video_thread is not None and after._video_thread is None
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("quads failed")
+    beside._quads_and_geometry = fail
+    with pytest.raises(RuntimeError, match="quads failed"):
+        beside.encode(Pose(*trace.pose_at(4.2)), 4.2)
+    del beside._quads_and_geometry
+    frame = beside.encode(Pose(*trace.pose_at(4.3)), 4.3)
+    assert frame.frame_type == FrameType.REFERENCE and frame.self_contained
+    beside.close()
+    after.close()
+    assert beside._video_thread is None
 
 
 def test_gathered_quads_come_out_by_size_then_row_then_column():
