@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from quadcast.cli import build_parser
-from quadcast.cli.demo import CLIENT_NICE, Child, virtual_twin
+from quadcast.cli.demo import CLIENT_CORES, CLIENT_NICE, Child, client_cpus, virtual_twin
 
 
 def test_the_demo_replays_its_walk_in_virtual_time(tmp_path):
@@ -51,4 +51,41 @@ def test_demo_client_nice_option(capsys):
     for bad, why in (("20", "must be 0..19"), ("x", "not an integer")):
         with pytest.raises(SystemExit):
             parser.parse_args(["demo", "--client-nice", bad])
+        assert why in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="CPU affinity is Linux's")
+def test_a_child_can_run_on_some_cpus_only(tmp_path):
+    """The demo's client runs on the last of the machine's cores (`client_cpus`): the child's affinity is that set,
+    its threads' too; a set that is empty or holds CPUs this process may not use is refused."""
+    ours = sorted(os.sched_getaffinity(0))
+    argv = [sys.executable, "-c", "import os, threading; t = threading.Thread(target=lambda: "
+            "print(sorted(os.sched_getaffinity(0)), flush=True)); t.start(); t.join(); "
+            "print(sorted(os.sched_getaffinity(0)))"]
+    child = Child("placed", argv, tmp_path / "placed.log", nice=3, cpus={ours[-1]})
+    child.wait(30)
+    assert child.lines == [f"[{ours[-1]}]"] * 2
+    for bad in (set(), {max(ours) + 1}):
+        with pytest.raises(ValueError, match="cpus must be a non-empty subset"):
+            Child("bad", argv, cpus=bad)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="CPU affinity is Linux's")
+def test_the_demo_client_gets_the_last_cores():
+    ours = sorted(os.sched_getaffinity(0))
+    assert CLIENT_CORES == 1
+    assert client_cpus(0) is None and client_cpus(len(ours)) is None and client_cpus(len(ours) + 3) is None
+    if len(ours) >= 2:
+        assert client_cpus(1) == {ours[-1]} and client_cpus(len(ours) - 1) == set(ours[1:])
+    with pytest.raises(ValueError, match="client cores must be >= 0, got -1"):
+        client_cpus(-1)
+
+
+def test_demo_client_cores_option(capsys):
+    parser = build_parser()
+    assert parser.parse_args(["demo"]).client_cores is None
+    assert parser.parse_args(["demo", "--client-cores", "0"]).client_cores == 0
+    for bad, why in (("-1", "must be >= 0"), ("one", "not an integer")):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["demo", "--client-cores", bad])
         assert why in capsys.readouterr().err

@@ -184,6 +184,17 @@ def _client_nice(text: str) -> int:
     return value
 
 
+def _client_cores(text: str) -> int:
+    """argparse type of ``demo --client-cores``: an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0 (0: all cores), got {value}")
+    return value
+
+
 def _eval_spec(args):
     from quadcast.render.camera import parse_size
     from quadcast.sim.evaluate import EvalSpec
@@ -291,9 +302,11 @@ def _bench_quality(args) -> int:
 
 def cmd_demo(args) -> int:
     """The live system on the built-in scene: server, link (20±10 ms) and client as three processes on loopback."""
-    from quadcast.cli.demo import CLIENT_NICE, run_demo
+    from quadcast.cli.demo import CLIENT_CORES, CLIENT_NICE, run_demo
     nice = CLIENT_NICE if args.client_nice is None else args.client_nice
-    return run_demo(Path(args.out), quiet=args.quiet, compare=not args.no_compare, client_nice=nice)
+    cores = CLIENT_CORES if args.client_cores is None else args.client_cores
+    return run_demo(Path(args.out), quiet=args.quiet, compare=not args.no_compare, client_nice=nice,
+                    client_cores=cores)
 
 
 # -------------------------------------------------------------------------------------------------- main
@@ -420,6 +433,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--client-nice", type=_client_nice, default=None, metavar="N",
                    help="run the client N below the server's and link's priority, 0..19 (default 10: a headset has "
                         "its own processor; here the client shares the server's cores)")
+    p.add_argument("--client-cores", type=_client_cores, default=None, metavar="N",
+                   help="run the client on the last N of the machine's cores, 0 for all of them (default 1: it "
+                        "never takes every core from the server)")
     p.set_defaults(func=cmd_demo)
 
     from quadcast.cli.live import add_live_commands

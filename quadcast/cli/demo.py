@@ -20,7 +20,7 @@ from pathlib import Path
 
 from quadcast.render.worker import die_with_parent
 
-__all__ = ["Child", "quadcast_argv", "run_demo", "LISTENING"]
+__all__ = ["Child", "client_cpus", "quadcast_argv", "run_demo", "LISTENING"]
 
 LISTENING = re.compile(r"listening on ([0-9.]+|localhost):(\d+)")
 """What a ready server or link prints; group 2 is the port."""
@@ -35,19 +35,31 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
     die_with_parent(signal.SIGTERM)
 
 
-def _die_with_parent_niced(increment: int) -> None:  # the same, then lower the child's priority by `increment`
+def _die_with_parent_placed(increment: int, cpus: frozenset[int] | None) -> None:
+    # the same, then lower the child's priority by `increment` and keep it on `cpus` (all its threads: they inherit
+    # both)
     die_with_parent(signal.SIGTERM)
-    os.nice(increment)
+    if increment:
+        os.nice(increment)
+    if cpus is not None:
+        os.sched_setaffinity(0, cpus)
 
 
 class Child:
     """A child process whose stdout lines are kept (and optionally echoed) and whose stderr goes to ``log``; with
-    ``nice`` > 0 it runs that much below this process's priority (all its threads: set before exec)."""
+    ``nice`` > 0 it runs that much below this process's priority, and with ``cpus`` only on those CPUs (all its
+    threads: both are set before exec; Linux)."""
 
     def __init__(self, name: str, argv: list[str], log: Path | None = None, echo: bool = False,
-                 env: dict | None = None, nice: int = 0) -> None:
+                 env: dict | None = None, nice: int = 0, cpus: set[int] | None = None) -> None:
         if not 0 <= nice <= 19:
             raise ValueError(f"Child {name!r}: nice must be 0..19, got {nice}")
+        linux = sys.platform.startswith("linux")
+        if cpus is not None:
+            allowed = os.sched_getaffinity(0) if linux else set()
+            if not cpus or not set(cpus) <= allowed:
+                raise ValueError(f"Child {name!r}: cpus must be a non-empty subset of this process's CPUs "
+                                 f"{sorted(allowed)}, got {sorted(cpus)}")
         self.name, self.argv, self.echo = name, argv, echo
         self.lines: list[str] = []
         self._cond = threading.Condition()
@@ -56,8 +68,9 @@ class Child:
         full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
         self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self._log, stdin=subprocess.DEVNULL,
                                      text=True, env=full_env,
-                                     preexec_fn=(functools.partial(_die_with_parent_niced, nice) if nice else
-                                                 _die_with_parent) if sys.platform.startswith("linux") else None)
+                                     preexec_fn=(functools.partial(_die_with_parent_placed, nice,
+                                                                   None if cpus is None else frozenset(cpus))
+                                                 if nice or cpus is not None else _die_with_parent) if linux else None)
         self._reader = threading.Thread(target=self._read, name=f"{name}-stdout", daemon=True)
         self._reader.start()
 
@@ -135,11 +148,29 @@ CLIENT_NICE = 10
 its own; here the client shares the server's two cores, and at equal priority its 60 Hz display loop took a third
 of the server's frame rate (README, "Live system")."""
 
+CLIENT_CORES = 1
+"""How many of this machine's cores the demo's client may run on (the last ones; 0: all of them). Kept to one core,
+as a headset's processor is its own, it never takes both of a two-core machine's cores from the server, whose
+rasterizer threads wait for each other: in alternating runs here the server sent 8.0-8.6 frames a second (one run
+7.3) instead of 7.3-7.5, and the client showed as many frames as before (docs/speed.md, stop 48)."""
+
+
+def client_cpus(cores: int) -> set[int] | None:
+    """The CPUs the demo's client runs on: the last `cores` of this process's, or None (no limit) when `cores` is 0
+    or not fewer than it has, or off Linux."""
+    if cores < 0:
+        raise ValueError(f"client cores must be >= 0, got {cores}")
+    if not cores or not sys.platform.startswith("linux"):
+        return None
+    allowed = sorted(os.sched_getaffinity(0))
+    return set(allowed[-cores:]) if cores < len(allowed) else None
+
 
 def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: float = 10.0,
-             record_every: int = 3, compare: bool = True, client_nice: int = CLIENT_NICE) -> int:
-    """Start server, link and client (the client `client_nice` below the others' priority); print the client's
-    figures and where the report is. With `compare`, then
+             record_every: int = 3, compare: bool = True, client_nice: int = CLIENT_NICE,
+             client_cores: int = CLIENT_CORES) -> int:
+    """Start server, link and client (the client `client_nice` below the others' priority, on `client_cores` of the
+    machine's cores: `client_cpus`); print the client's figures and where the report is. With `compare`, then
     replay the same walk at the same size over the same link model in virtual time (:func:`virtual_twin`) and print
     both FLIPs: what the live system lost to this machine's speed; and once more with the server taking the live
     run's time per received frame: how much of that loss is the server's frame rate."""
@@ -161,11 +192,12 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
         children.append(link)
         link_port = int(link.wait_for(LISTENING, 60).group(2))
         client_out = out / "client"
+        cpus = client_cpus(client_cores)
         client = Child("client", quadcast_argv("client", "--connect", f"127.0.0.1:{link_port}", "--trace",
                                                "builtin:walk", "--scene", "builtin:courtyard", "--size", size,
                                                "--duration", duration, "--record-every", record_every,
                                                "--label-latency", 20, "--label-jitter", 10, "--out", client_out),
-                       out / "client.log", echo=not quiet, nice=client_nice)
+                       out / "client.log", echo=not quiet, nice=client_nice, cpus=cpus)
         children.append(client)
         code = client.wait(timeout=duration + 900)
         if code != 0:
@@ -173,7 +205,9 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
             return 1
         s = json.loads((client_out / "summary.json").read_text())
         print(f"demo: server, link (20±10 ms) and client ran as processes {server.pid}, {link.pid}, {client.pid} "
-              f"on 127.0.0.1, the client at nice {client_nice} ({time.monotonic() - t0:.0f} s)")
+              f"on 127.0.0.1, the client at nice {client_nice}"
+              f"{'' if cpus is None else ' on CPU ' + ','.join(map(str, sorted(cpus)))} "
+              f"({time.monotonic() - t0:.0f} s)")
         print(f"demo: {s['method']} on {s['trace']} in {s['scene']} at {s['size']}, {s['duration_s']:.1f} s live: "
               f"{s['mbps']:.2f} Mbps on the socket (video {s['mbps_video']:.2f}, geometry {s['mbps_geometry']:.2f}), "
               f"{s['server_frames']} frames received = {s['server_frames'] / max(s['duration_s'], 1e-9):.1f} server "
