@@ -212,9 +212,9 @@ def test_one_pass_list_drawn_behind_the_visible_layer_keeps_the_same_layers(ctx,
     stepped = read_texture(behind._list_depth, 1, "f4").astype(np.float64)
     empty = ~(position[..., 3] > 0)
     assert empty.any() and (~empty).mean() > 0.5 and np.all(stepped[empty] == 1.0)
-    n, f = cam.frustum.near, cam.frustum.far
-    z = np.minimum(-position[..., 2].astype(np.float64) * 1.001, f)[~empty]
-    window = 0.5 * ((f + n) / (f - n) - 2 * f * n / ((f - n) * z)) + 0.5
+    z = np.minimum(-position[..., 2].astype(np.float64) * 1.001, cam.frustum.far)[~empty]
+    clip = cam.frustum.projection_matrix() @ np.stack([np.zeros_like(z), np.zeros_like(z), -z, np.ones_like(z)])
+    window = 0.5 * clip[2] / clip[3] + 0.5            # the renderer's projection, depth range [0, 1]
     assert np.all(stepped[~empty] < window) and np.all(stepped[~empty] > window - 2e-6)
 
 

@@ -31,13 +31,9 @@ def quadcast_argv(*args: str) -> list[str]:
     return [sys.executable, "-m", "quadcast", *map(str, args)]
 
 
-def _die_with_parent() -> None:  # runs in the child between fork and exec
-    die_with_parent(signal.SIGTERM)
-
-
-def _die_with_parent_placed(increment: int, cpus: frozenset[int] | None) -> None:
-    # the same, then lower the child's priority by `increment` and keep it on `cpus` (all its threads: they inherit
-    # both)
+def _die_with_parent(increment: int = 0, cpus: frozenset[int] | None = None) -> None:
+    # runs in the child between fork and exec; then lowers its priority by `increment` and keeps it on `cpus` (all
+    # its threads: they inherit both)
     die_with_parent(signal.SIGTERM)
     if increment:
         os.nice(increment)
@@ -68,9 +64,9 @@ class Child:
         full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
         self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self._log, stdin=subprocess.DEVNULL,
                                      text=True, env=full_env,
-                                     preexec_fn=(functools.partial(_die_with_parent_placed, nice,
-                                                                   None if cpus is None else frozenset(cpus))
-                                                 if nice or cpus is not None else _die_with_parent) if linux else None)
+                                     preexec_fn=functools.partial(_die_with_parent, nice,
+                                                                  None if cpus is None else frozenset(cpus))
+                                     if linux else None)
         self._reader = threading.Thread(target=self._read, name=f"{name}-stdout", daemon=True)
         self._reader.start()
 
