@@ -234,18 +234,19 @@ class LayerRenderer:
         return self.renderer.geometry_pass(camera, t, target=self.visible)
 
     def render(self, camera: Camera, t: float, viewcell_radius: float, connectivity: float = 0.001,
-               max_radius_deg: float = 5.9, visible_drawn: bool = False) -> list[GBuffer]:
+               max_radius_deg: float = 5.9, visible_drawn: bool = False, hidden: bool = True) -> list[GBuffer]:
         """The visible layer (at the camera's size) and the hidden layers (at `hidden_size`, seen by
         `hidden_camera(camera)`). A hidden fragment is searched for a visible edge within the disc it can shift
         by inside the view sphere, at most `max_radius_deg` of the view across. `visible_drawn`: `draw_visible`
-        already drew the visible layer's geometry (same camera and time)."""
+        already drew the visible layer's geometry (same camera and time). `hidden` False: the visible layer alone
+        is made, and the hidden layers are returned as the last call left them."""
         r = self.renderer
         if not visible_drawn:
             self.draw_visible(camera, t)
         r.lighting_pass(self.visible, t)
         layers = [self.visible]
-        if not self.hidden:
-            return layers
+        if not self.hidden or not hidden:
+            return layers + self.hidden
         small = self.hidden_camera(camera)
         visible_position = layers[0].position
         if self.visible_small is not None:

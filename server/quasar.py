@@ -51,6 +51,13 @@ class QuasarSettings:
     wide_turn_dps: float = 120.0
     wide_scale: float = 0.625
     hidden_scale: float = 0.5
+    # A server slower than the pose rate (the last frames' display times more than hidden_reuse_after_ms apart on
+    # average, as in the live demo here) renders the hidden layers every `hidden_every` frames and sends the last
+    # ones again in between, as they were: their quads, their camera, and their colour in the atlas from the
+    # G-buffers kept since. The hidden layers are a third of such a frame's work here; at equal CPU time the real
+    # traces' fastest windows showed about the same FLIP (docs/speed.md, stop 49). 1: every frame.
+    hidden_every: int = 2
+    hidden_reuse_after_ms: float = 100.0
     far_field: bool = True               # a cube map around the view cell behind everything (server/farfield.py)
     far_scale: float = 0.25              # its face size, relative to the view's height ...
     far_block: int = 16                  # ... in whole blocks of this many pixels (its quads)
@@ -75,6 +82,10 @@ class QuasarSettings:
             raise ValueError(f"viewcell radius must be >= 0 m, got {self.viewcell_radius}")
         if self.reference_every < 1:
             raise ValueError(f"reference_every must be >= 1, got {self.reference_every}")
+        if self.hidden_every < 1:
+            raise ValueError(f"hidden_every must be >= 1, got {self.hidden_every}")
+        if not self.hidden_reuse_after_ms >= 0:
+            raise ValueError(f"hidden_reuse_after_ms must be >= 0, got {self.hidden_reuse_after_ms}")
         for name in ("depth_bits", "fill_depth_bits"):
             bits = getattr(self, name)
             if bits is not None and not 1 <= bits <= 23:
@@ -136,6 +147,10 @@ class QuasarServer(MethodServer):
         self._reference_time = 0.0
         self._display_times: list[float] = []   # the last frames' display times (the wide view's FOV)
         self._force_reference = True
+        # the hidden layers last rendered (sent again until `hidden_every` frames have passed) and how many frames
+        # ago; None: render them with the next frame
+        self._kept_hidden: list[QuadLayer] | None = None
+        self._hidden_age = 0
         self.point: OperatingPoint | None = None      # the operating point applied last (None: the settings as given)
         self.rotation_miss_deg: float | None = None   # set_rotation_miss: the wide view's margin on each side
 
@@ -243,8 +258,19 @@ class QuasarServer(MethodServer):
         if self.rotation_miss_deg is not None:
             margin = self.rotation_miss_deg
         else:
-            margin = s.wide_turn_dps * ((times[-1] - times[0]) / (len(times) - 1) if len(times) > 1 else 0.0)
+            margin = s.wide_turn_dps * self._display_interval()
         return float(np.clip(s.fovy_deg + 2.0 * margin, s.wide_fovy_deg, s.wide_fovy_max_deg))
+
+    def _display_interval(self) -> float:
+        """The mean interval (s) between the display times `_wide_fovy` recorded last (0 before two)."""
+        times = self._display_times
+        return (times[-1] - times[0]) / (len(times) - 1) if len(times) > 1 else 0.0
+
+    def _hidden_due(self) -> bool:
+        """Whether this frame renders the hidden layers (see QuasarSettings.hidden_every), after `_wide_fovy`."""
+        s, kept = self.s, self._kept_hidden
+        every = s.hidden_every if self._display_interval() * 1e3 > s.hidden_reuse_after_ms else 1
+        return kept is None or len(kept) != len(self.layer_renderer.hidden) or self._hidden_age + 1 >= every
 
     def encode(self, pose: Pose, t: float) -> FramePayload:
         s, ctx = self.s, self.ctx
@@ -278,7 +304,11 @@ class QuasarServer(MethodServer):
         fresh_far = self.far_field if is_reference else None    # rendered again on reference frames only
         if fresh_far is not None:
             fresh_far.draw_geometry(camera.pose.position, t, camera.frustum.near, camera.frustum.far)
-        gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity, visible_drawn=True)
+        fresh_hidden = self._hidden_due()
+        if fresh_hidden:
+            self._kept_hidden = None        # until this frame's are made
+        gbs = self.layer_renderer.render(camera, t, s.viewcell_radius, s.connectivity, visible_drawn=True,
+                                         hidden=fresh_hidden)
         self.renderer.lighting_pass(wide_gb, t, geometry_only=not s.hidden.sky)
         if ref_gb is not None:
             self.renderer.lighting_pass(ref_gb, t, region)
@@ -411,11 +441,17 @@ class QuasarServer(MethodServer):
             layers.append(QuadLayer(LayerKind.REVEALED, s.width, s.height, cam_floats, L.current, rev))
             self.frames_since_reference += 1
         ms["cache"] = (time.perf_counter() - t0) * 1e3 - (timings.total - quad_ms)
-        hidden_cam = self.layer_renderer.hidden_camera(camera)
-        for gb, rect in zip(gbs[1:], L.hidden):
-            hidden = fill(quads(gb, hidden_cam, self.hidden_params, generator=self.hidden_generator))
-            layers.append(QuadLayer(LayerKind.HIDDEN, hidden_cam.width, hidden_cam.height, hidden_cam.to_array(),
-                                    rect, hidden))
+        if self._kept_hidden is not None:
+            layers += self._kept_hidden
+            self._hidden_age += 1
+        else:
+            hidden_cam = self.layer_renderer.hidden_camera(camera)
+            for gb, rect in zip(gbs[1:], L.hidden):
+                hidden = fill(quads(gb, hidden_cam, self.hidden_params, generator=self.hidden_generator))
+                layers.append(QuadLayer(LayerKind.HIDDEN, hidden_cam.width, hidden_cam.height,
+                                        hidden_cam.to_array(), rect, hidden))
+            self._kept_hidden = [layer for layer in layers if layer.kind == LayerKind.HIDDEN]
+            self._hidden_age = 0
         wide = fill(quads(wide_gb, wide_cam, self.hidden_params, generator=self.wide_generator, inner=camera))
         layers.append(QuadLayer(LayerKind.WIDE, wide_cam.width, wide_cam.height, wide_cam.to_array(), L.wide, wide))
         if fresh_far is not None:

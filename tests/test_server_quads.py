@@ -604,6 +604,63 @@ def test_video_coded_beside_the_quads_is_the_video_coded_after_them(courtyard_re
     assert beside._video_thread is None
 
 
+def test_hidden_layers_sent_again_while_frames_come_far_apart(courtyard_renderer):
+    """Frames more than hidden_reuse_after_ms apart render the hidden layers every hidden_every frames and send the
+    last ones again in between: the same quads and camera, and their colour in the kept G-buffers unchanged. Frames
+    1/30 s apart, or hidden_every 1, render them with every frame. A frame whose quads fail leaves nothing kept, so
+    the next frame renders them again."""
+    from quadcast.render.traces import resolve_trace
+    trace = resolve_trace("builtin:walk")
+    s = QuasarSettings(width=160, height=96, layers=3)
+    assert s.hidden_every == 2 and s.hidden_reuse_after_ms == 100.0
+
+    def hidden(server, t):
+        """(each hidden layer's camera and quads, the pose's own hidden camera, the kept G-buffers' colour)"""
+        pose = Pose(*trace.pose_at(t))
+        frame = decode_quad_frame(server.encode(pose, t).geometry)
+        layers = [(layer.camera.tobytes(), layer.quads) for layer in frame.layers if layer.kind == LayerKind.HIDDEN]
+        own = server.layer_renderer.hidden_camera(server.camera_for(pose)).to_array().tobytes()
+        colours = [read_texture(gb.color, 4, "u1") for gb in server.layer_renderer.hidden]
+        return layers, own, colours
+
+    def same(a, b):
+        return len(a) == len(b) and all(ca == cb and _same_quads(qa, qb) for (ca, qa), (cb, qb) in zip(a, b))
+
+    slow = QuasarServer(courtyard_renderer, s)
+    frames = [hidden(slow, 1.0 + 0.2 * k) for k in range(5)]
+    assert len(frames[0][0]) == 2
+    for k, (layers, own, colours) in enumerate(frames):
+        fresh = k % 2 == 0                       # the first frame, then every other one
+        assert all(camera == own for camera, _ in layers) == fresh, k
+        if not fresh:
+            previous = frames[k - 1]
+            assert same(layers, previous[0]), k
+            assert all(np.array_equal(a, b) for a, b in zip(colours, previous[2])), k
+    assert not same(frames[2][0], frames[0][0])
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("quads failed")
+    layers, own, _ = hidden(slow, 2.0)           # frame 6 sends frame 5's again
+    assert not any(camera == own for camera, _ in layers)
+    slow._quads_and_geometry = fail              # frame 7 renders them again, then fails
+    with pytest.raises(RuntimeError, match="quads failed"):
+        slow.encode(Pose(*trace.pose_at(2.2)), 2.2)
+    del slow._quads_and_geometry
+    layers, own, _ = hidden(slow, 2.4)           # would have sent frame 7's again
+    assert all(camera == own for camera, _ in layers)
+    slow.close()
+
+    for settings, step in ((s, 1 / 30), (replace(s, hidden_every=1), 0.2)):
+        server = QuasarServer(courtyard_renderer, settings)
+        for k in range(4):
+            layers, own, _ = hidden(server, 1.0 + step * k)
+            assert all(camera == own for camera, _ in layers), (step, k)
+        server.close()
+    for bad in (dict(hidden_every=0), dict(hidden_reuse_after_ms=-1.0)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            QuasarSettings(**bad)
+
+
 def test_gathered_quads_come_out_by_size_then_row_then_column():
     """The GPU appends quads in any order; the server's QuadSet orders them by size, then y, then x, exactly as
     np.lexsort on those columns does (the payload must not depend on the GPU's scheduling)."""
