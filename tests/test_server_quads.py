@@ -638,10 +638,11 @@ def test_hidden_layers_sent_again_while_frames_come_far_apart(courtyard_renderer
             assert all(np.array_equal(a, b) for a, b in zip(colours, previous[2])), k
     assert not same(frames[2][0], frames[0][0])
 
-    def fail(*args, **kwargs):
-        raise RuntimeError("quads failed")
     layers, own, _ = hidden(slow, 2.0)           # frame 6 sends frame 5's again
     assert not any(camera == own for camera, _ in layers)
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("quads failed")
     slow._quads_and_geometry = fail              # frame 7 renders them again, then fails
     with pytest.raises(RuntimeError, match="quads failed"):
         slow.encode(Pose(*trace.pose_at(2.2)), 2.2)
