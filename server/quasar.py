@@ -54,9 +54,9 @@ class QuasarSettings:
     # A server slower than the pose rate (the last frames' display times more than hidden_reuse_after_ms apart on
     # average, as in the live demo here) renders the hidden layers every `hidden_every` frames and sends the last
     # ones again in between, as they were: their quads, their camera, and their colour in the atlas from the
-    # G-buffers kept since. Frames then take 12% less time on average here, and at equal CPU time the real traces'
-    # fastest windows showed about the same FLIP, better in three runs of five (docs/speed.md, stop 49). 1: every
-    # frame.
+    # G-buffers kept since. Frames then take 12% less time on average here, and at equal CPU time FLIP was about the
+    # same: better in three of five runs (the real traces' fastest windows and the walk; docs/speed.md, stop 49).
+    # 1: every frame.
     hidden_every: int = 2
     hidden_reuse_after_ms: float = 100.0
     far_field: bool = True               # a cube map around the view cell behind everything (server/farfield.py)
