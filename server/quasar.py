@@ -148,10 +148,9 @@ class QuasarServer(MethodServer):
         self._reference_time = 0.0
         self._display_times: list[float] = []   # the last frames' display times (the wide view's FOV)
         self._force_reference = True
-        # the hidden layers last rendered (sent again until `hidden_every` frames have passed) and how many frames
-        # ago; None: render them with the next frame
-        self._kept_hidden: list[QuadLayer] | None = None
-        self._hidden_age = 0
+        # the hidden layers last rendered and the frame id they were rendered for (sent again until `hidden_every`
+        # frames have passed); None: render them with the next frame
+        self._kept_hidden: tuple[int, list[QuadLayer]] | None = None
         self.point: OperatingPoint | None = None      # the operating point applied last (None: the settings as given)
         self.rotation_miss_deg: float | None = None   # set_rotation_miss: the wide view's margin on each side
 
@@ -271,7 +270,7 @@ class QuasarServer(MethodServer):
         """Whether this frame renders the hidden layers (see QuasarSettings.hidden_every), after `_wide_fovy`."""
         s, kept = self.s, self._kept_hidden
         every = s.hidden_every if self._display_interval() * 1e3 > s.hidden_reuse_after_ms else 1
-        return kept is None or len(kept) != len(self.layer_renderer.hidden) or self._hidden_age + 1 >= every
+        return kept is None or len(kept[1]) != len(self.layer_renderer.hidden) or self.frame_id - kept[0] >= every
 
     def encode(self, pose: Pose, t: float) -> FramePayload:
         s, ctx = self.s, self.ctx
@@ -443,16 +442,14 @@ class QuasarServer(MethodServer):
             self.frames_since_reference += 1
         ms["cache"] = (time.perf_counter() - t0) * 1e3 - (timings.total - quad_ms)
         if self._kept_hidden is not None:
-            layers += self._kept_hidden
-            self._hidden_age += 1
+            layers += self._kept_hidden[1]
         else:
             hidden_cam = self.layer_renderer.hidden_camera(camera)
             for gb, rect in zip(gbs[1:], L.hidden):
                 hidden = fill(quads(gb, hidden_cam, self.hidden_params, generator=self.hidden_generator))
                 layers.append(QuadLayer(LayerKind.HIDDEN, hidden_cam.width, hidden_cam.height,
                                         hidden_cam.to_array(), rect, hidden))
-            self._kept_hidden = [layer for layer in layers if layer.kind == LayerKind.HIDDEN]
-            self._hidden_age = 0
+            self._kept_hidden = (self.frame_id, [layer for layer in layers if layer.kind == LayerKind.HIDDEN])
         wide = fill(quads(wide_gb, wide_cam, self.hidden_params, generator=self.wide_generator, inner=camera))
         layers.append(QuadLayer(LayerKind.WIDE, wide_cam.width, wide_cam.height, wide_cam.to_array(), L.wide, wide))
         if fresh_far is not None:
