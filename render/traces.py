@@ -359,7 +359,7 @@ class Trace:
     def fastest_window(self, duration_s: float) -> float:
         """Start (seconds after the first sample) of the ``duration_s`` window with the most apparent motion: the
         sum over its samples of the turn (radians) plus the move (metres) / :data:`APPARENT_DEPTH_M`. The window
-        starts at a sample; a trace no longer than ``duration_s`` gives 0."""
+        starts at a sample; a trace exactly ``duration_s`` long gives 0, a shorter one is a :class:`TraceError`."""
         if not np.isfinite(duration_s) or duration_s <= 0:
             raise TraceError(f"trace {self.name!r}: window duration must be > 0 s, got {duration_s!r}")
         if duration_s >= self.duration - 1e-9:

@@ -1,4 +1,5 @@
-"""`quadcast demo`'s virtual-time twin: the same walk, size and link replayed in virtual time."""
+"""`quadcast demo`: what it follows (`DemoView`), its virtual-time twin (the same trace, size and link replayed in
+virtual time) and how it starts its processes."""
 from __future__ import annotations
 
 import json
@@ -8,11 +9,12 @@ import sys
 import pytest
 
 from quadcast.cli import build_parser
-from quadcast.cli.demo import CLIENT_CORES, CLIENT_NICE, Child, client_cpus, virtual_twin
+from quadcast.cli.demo import CLIENT_CORES, CLIENT_NICE, DEMO_SECONDS, Child, DemoView, client_cpus, virtual_twin
+from quadcast.render.traces import TraceError, resolve_trace
 
 
 def test_the_demo_replays_its_walk_in_virtual_time(tmp_path):
-    s = virtual_twin(tmp_path / "virtual", "160x90", 0.5, quiet=True)
+    s = virtual_twin(tmp_path / "virtual", DemoView(size="160x90", duration=0.5), quiet=True)
     assert (s["method"], s["scene"], s["trace"], s["size"]) == ("quasar", "builtin:courtyard", "builtin:walk", "160x90")
     assert (s["latency_ms"], s["jitter_ms"], s["display_frames"]) == (20.0, 10.0, 30)
     assert s["frames"] >= 1 and 0.0 < s["flip"] < 1.0 and s["server_frames"] >= 1
@@ -21,11 +23,69 @@ def test_the_demo_replays_its_walk_in_virtual_time(tmp_path):
 
 def test_the_twin_replays_a_slow_server_at_its_frame_time(tmp_path):
     """With the live run's time per frame, the twin's server makes that many frames a second, not 30."""
-    fast = virtual_twin(tmp_path / "fast", "160x90", 1.0, quiet=True)
-    slow = virtual_twin(tmp_path / "slow", "160x90", 1.0, quiet=True, server_frame_ms=250.0)
+    view = DemoView(size="160x90", duration=1.0)
+    fast = virtual_twin(tmp_path / "fast", view, quiet=True)
+    slow = virtual_twin(tmp_path / "slow", view, quiet=True, server_frame_ms=250.0)
     assert slow["server_frame_ms"] == 250.0 and fast["server_frame_ms"] == 0.0
     assert fast["server_frames"] >= 25
     assert 3 <= slow["server_frames"] <= 5          # one frame started at most every 250 ms over 1 s
+
+
+def test_the_demo_follows_another_trace_in_another_scene(tmp_path):
+    """A trace file re-anchored at the scene's spawn point, from its fastest window: the twin replays that window
+    there, and the client is told the same (its options are `quadcast eval`'s)."""
+    trace = tmp_path / "far.txt"
+    resolve_trace("builtin:orbit").window(0.0, 3.0).anchored([100.0, 5.0, 100.0], 0.0).save(trace)
+    view = DemoView(scene="builtin:courtyard-static", trace=str(trace), anchor="spawn", start="fastest",
+                    duration=0.5, size="160x90").resolved()
+    assert view.start == resolve_trace(str(trace)).fastest_window(0.5) and view.duration == 0.5
+    args = view.trace_args()
+    assert args[:6] == ["--scene", "builtin:courtyard-static", "--trace", str(trace), "--anchor", "spawn"]
+    assert args[6:] == ([] if view.start == 0 else ["--start", str(view.start)])
+    assert build_parser().parse_args(["eval", *args, "--out", "x"]).anchor == "spawn"
+    s = virtual_twin(tmp_path / "virtual", view, quiet=True)
+    assert (s["scene"], s["trace"], s["anchor"], s["display_frames"]) == ("builtin:courtyard-static", str(trace),
+                                                                          "spawn", 30)
+    assert s["start_s"] == view.start and s["frames"] >= 1 and 0.0 < s["flip"] < 1.0
+
+
+def test_what_the_demo_follows_is_checked_before_it_starts(tmp_path):
+    walk = resolve_trace("builtin:walk")
+    default = DemoView().resolved()
+    assert (default.scene, default.trace, default.start, default.duration) == ("builtin:courtyard", "builtin:walk",
+                                                                               0.0, DEMO_SECONDS)
+    short = tmp_path / "short.txt"
+    walk.window(0.0, 4.0).save(short)
+    rest = resolve_trace(str(short)).duration
+    assert DemoView(trace=str(short)).resolved().duration == rest      # 10 s unless the trace ends sooner
+    assert DemoView(trace=str(short), start=1.0).resolved().duration == pytest.approx(rest - 1.0)
+    assert DemoView(trace=str(short), start="fastest").resolved().start == 0.0    # its whole length
+    for view, why in ((DemoView(trace=str(short), duration=5.0), "has 4.00 s left after --start 0 s, less than "
+                                                                 "--duration 5 s"),
+                      (DemoView(start=walk.duration + 1), "--start must be 'fastest' or seconds in"),
+                      (DemoView(start=-1.0), "--start must be"),
+                      (DemoView(duration=0.0), "--duration must be > 0 s"),
+                      (DemoView(size="big"), "size must look like 960x540"),
+                      (DemoView(anchor="north"), "anchor 'north': expected 'spawn' or"),
+                      (DemoView(trace=str(tmp_path / "none.txt")), "not found"),
+                      (DemoView(trace=str(short), start="fastest", duration=6.0), "shorter than a 6 s window")):
+        with pytest.raises((ValueError, TraceError), match=why):
+            view.resolved()
+
+
+def test_demo_trace_options(capsys):
+    parser = build_parser()
+    args = parser.parse_args(["demo"])
+    assert (args.scene, args.trace, args.anchor, args.start, args.duration, args.size) == (
+        "builtin:courtyard", "builtin:walk", None, 0.0, None, "480x270")
+    args = parser.parse_args(["demo", "--scene", "monastery", "--trace", "t.txt", "--anchor", "spawn", "--start",
+                              "fastest", "--duration", "4", "--size", "320x180"])
+    assert (args.scene, args.trace, args.anchor, args.start, args.duration, args.size) == (
+        "monastery", "t.txt", "spawn", "fastest", 4.0, "320x180")
+    assert parser.parse_args(["demo", "--start", "2.5"]).start == 2.5
+    with pytest.raises(SystemExit):
+        parser.parse_args(["demo", "--start", "soon"])
+    assert "not seconds or 'fastest': 'soon'" in capsys.readouterr().err
 
 
 def _niceness_of(child: Child) -> int:

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -184,6 +183,16 @@ def _client_nice(text: str) -> int:
     return value
 
 
+def _demo_start(text: str) -> float | str:
+    """argparse type of ``demo --start``: seconds, or ``fastest``."""
+    if text.strip().lower() == "fastest":
+        return "fastest"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not seconds or 'fastest': {text!r}") from None
+
+
 def _client_cores(text: str) -> int:
     """argparse type of ``demo --client-cores``: an integer >= 0."""
     try:
@@ -301,11 +310,14 @@ def _bench_quality(args) -> int:
 # -------------------------------------------------------------------------------------------------- demo
 
 def cmd_demo(args) -> int:
-    """The live system on the built-in scene: server, link (20±10 ms) and client as three processes on loopback."""
-    from quadcast.cli.demo import CLIENT_CORES, CLIENT_NICE, run_demo
+    """The live system (by default on the built-in scene and walk): server, link (20±10 ms) and client as three
+    processes on loopback."""
+    from quadcast.cli.demo import CLIENT_CORES, CLIENT_NICE, DemoView, run_demo
     nice = CLIENT_NICE if args.client_nice is None else args.client_nice
     cores = CLIENT_CORES if args.client_cores is None else args.client_cores
-    return run_demo(Path(args.out), quiet=args.quiet, compare=not args.no_compare, client_nice=nice,
+    view = DemoView(scene=args.scene, trace=args.trace, anchor=args.anchor, start=args.start, duration=args.duration,
+                    size=args.size)
+    return run_demo(Path(args.out), quiet=args.quiet, view=view, compare=not args.no_compare, client_nice=nice,
                     client_cores=cores)
 
 
@@ -425,11 +437,21 @@ def build_parser() -> argparse.ArgumentParser:
                                    "protocol/ladder.json)")
     p.set_defaults(func=cmd_bench)
 
-    p = sub.add_parser("demo", help="the live system on the built-in scene: server, link (20±10 ms) and client "
-                                    "processes on loopback; prints Mbps and FLIP/SSIM")
+    p = sub.add_parser("demo", help="the live system (by default the built-in walk through the built-in scene): "
+                                    "server, link (20±10 ms) and client processes on loopback; prints Mbps and "
+                                    "FLIP/SSIM, then the same in virtual time")
     p.add_argument("--out", default="out/demo")
     p.add_argument("--no-compare", action="store_true",
-                   help="skip the same walk in virtual time afterwards (its FLIP is what the live run is held to)")
+                   help="skip the same trace in virtual time afterwards (its FLIP is what the live run is held to)")
+    p.add_argument("--scene", default="builtin:courtyard", help="the scene the server renders")
+    p.add_argument("--trace", default="builtin:walk", help="the trace the client follows (builtin:NAME or a QUASAR "
+                                                           "trace file)")
+    add_trace_placement(p, start=False)
+    p.add_argument("--start", type=_demo_start, default=0.0,
+                   help="trace time to start at, seconds, or 'fastest': the start of its --duration s of fastest "
+                        "motion")
+    p.add_argument("--duration", type=float, help="seconds live (default: 10, or the rest of the trace if shorter)")
+    p.add_argument("--size", default="480x270", help="WxH")
     p.add_argument("--client-nice", type=_client_nice, default=None, metavar="N",
                    help="run the client N below the server's and link's priority, 0..19 (default 10: a headset has "
                         "its own processor; here the client shares the server's cores)")

@@ -1,5 +1,9 @@
 """``quadcast demo``: the live system as three processes on loopback -- server, link (20±10 ms), client.
 
+By default the client follows the built-in walk through the built-in courtyard; :class:`DemoView` names another
+scene and trace (a QUASAR trace file re-anchored into the scene, from a start time or its fastest window), so the
+live run and its virtual-time twin can be compared on scenes and head motion the defaults do not show.
+
 :class:`Child` runs one ``quadcast`` subcommand as a child process, collects its stdout lines (a reader thread)
 and its stderr in a log file, and can wait for a line matching a pattern (``... listening on HOST:PORT``). The
 children die with their parent (``PR_SET_PDEATHSIG`` on Linux) and :func:`run_demo` stops them on any exit.
@@ -9,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import re
 import signal
@@ -16,11 +21,12 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from quadcast.render.worker import die_with_parent
 
-__all__ = ["Child", "client_cpus", "quadcast_argv", "run_demo", "LISTENING"]
+__all__ = ["Child", "DemoView", "client_cpus", "quadcast_argv", "run_demo", "LISTENING"]
 
 LISTENING = re.compile(r"listening on ([0-9.]+|localhost):(\d+)")
 """What a ready server or link prints; group 2 is the port."""
@@ -151,6 +157,57 @@ rasterizer threads wait for each other: in alternating runs here the server sent
 7.3) instead of 7.3-7.5, and the client showed as many frames as before (docs/speed.md, stop 48)."""
 
 
+DEMO_SECONDS = 10.0
+"""How long the demo's client follows its trace unless told (or less, if the trace ends sooner)."""
+
+
+@dataclass(frozen=True)
+class DemoView:
+    """What the demo's client follows: `trace` (``builtin:NAME`` or a QUASAR trace file) in `scene`, re-anchored
+    with `anchor` (None, ``spawn`` or ``x,y,z[,yaw_deg]``, as ``quadcast eval --anchor``), from `start` seconds into
+    it or, with ``"fastest"``, from the start of its `duration` s of fastest motion (`Trace.fastest_window`), for
+    `duration` s (None: :data:`DEMO_SECONDS`, or the rest of the trace if shorter), at `size` (WxH)."""
+
+    scene: str = "builtin:courtyard"
+    trace: str = "builtin:walk"
+    anchor: str | None = None
+    start: float | str = 0.0
+    duration: float | None = None
+    size: str = "480x270"
+
+    def resolved(self) -> "DemoView":
+        """This view with `start` and `duration` in seconds, checked against the trace (clear errors: a bad trace,
+        size or anchor, a start past its end, a duration longer than what is left of it)."""
+        from quadcast.render.camera import parse_size
+        from quadcast.render.traces import parse_anchor, resolve_trace
+        parse_size(self.size)
+        if self.anchor is not None:
+            parse_anchor(self.anchor)
+        trace = resolve_trace(self.trace)
+        if self.duration is not None and not (math.isfinite(self.duration) and self.duration > 0):
+            raise ValueError(f"--duration must be > 0 s, got {self.duration:g}")
+        if self.start == "fastest":
+            duration = min(DEMO_SECONDS, trace.duration) if self.duration is None else self.duration
+            start = trace.fastest_window(duration)
+        elif isinstance(self.start, str) or not (math.isfinite(self.start) and 0 <= self.start < trace.duration):
+            raise ValueError(f"--start must be 'fastest' or seconds in [0, {trace.duration:.2f}) of "
+                             f"{self.trace}, got {self.start!r}")
+        else:
+            start = float(self.start)
+            rest = trace.duration - start
+            duration = min(DEMO_SECONDS, rest) if self.duration is None else self.duration
+            if duration > rest + 1e-9:
+                raise ValueError(f"{self.trace} has {rest:.2f} s left after --start {start:g} s, less than "
+                                 f"--duration {duration:g} s")
+        return replace(self, start=float(start), duration=float(duration))
+
+    def trace_args(self) -> list:
+        """The client's and ``quadcast eval``'s trace options for this (resolved) view."""
+        anchor = [] if self.anchor is None else ["--anchor", self.anchor]
+        return ["--scene", self.scene, "--trace", self.trace, *anchor, *(["--start", str(self.start)]
+                                                                         if self.start else [])]
+
+
 def client_cpus(cores: int) -> set[int] | None:
     """The CPUs the demo's client runs on: the last `cores` of this process's, or None (no limit) when `cores` is 0
     or not fewer than it has, or off Linux."""
@@ -162,14 +219,16 @@ def client_cpus(cores: int) -> set[int] | None:
     return set(allowed[-cores:]) if cores < len(allowed) else None
 
 
-def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: float = 10.0,
-             record_every: int = 3, compare: bool = True, client_nice: int = CLIENT_NICE,
-             client_cores: int = CLIENT_CORES) -> int:
+def run_demo(out: Path, quiet: bool = False, view: DemoView = DemoView(), record_every: int = 3,
+             compare: bool = True, client_nice: int = CLIENT_NICE, client_cores: int = CLIENT_CORES) -> int:
     """Start server, link and client (the client `client_nice` below the others' priority, on `client_cores` of the
-    machine's cores: `client_cpus`); print the client's figures and where the report is. With `compare`, then
-    replay the same walk at the same size over the same link model in virtual time (:func:`virtual_twin`) and print
-    both FLIPs: what the live system lost to this machine's speed; and once more with the server taking the live
-    run's time per received frame: how much of that loss is the server's frame rate."""
+    machine's cores: `client_cpus`) on `view`'s scene and trace; print the client's figures and where the report
+    is. With `compare`, then replay the same trace at the same size over the same link model in virtual time
+    (:func:`virtual_twin`) and print both FLIPs: what the live system lost to this machine's speed; and once more
+    with the server taking the live run's time per received frame: how much of that loss is the server's frame
+    rate."""
+    view = view.resolved()
+    size, duration = view.size, view.duration
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     children: list[Child] = []
@@ -180,7 +239,8 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
     previous = signal.signal(signal.SIGTERM, on_term)
     try:
         t0 = time.monotonic()
-        server = Child("server", quadcast_argv("server", "--port", 0, "-v"), out / "server.log", echo=not quiet)
+        server = Child("server", quadcast_argv("server", "--scene", view.scene, "--port", 0, "-v"), out / "server.log",
+                       echo=not quiet)
         children.append(server)
         port = int(server.wait_for(LISTENING, 120).group(2))
         link = Child("link", quadcast_argv("link", "--listen", 0, "--to", f"127.0.0.1:{port}", "--delay", "20ms",
@@ -189,9 +249,9 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
         link_port = int(link.wait_for(LISTENING, 60).group(2))
         client_out = out / "client"
         cpus = client_cpus(client_cores)
-        client = Child("client", quadcast_argv("client", "--connect", f"127.0.0.1:{link_port}", "--trace",
-                                               "builtin:walk", "--scene", "builtin:courtyard", "--size", size,
-                                               "--duration", duration, "--record-every", record_every,
+        client = Child("client", quadcast_argv("client", "--connect", f"127.0.0.1:{link_port}", *view.trace_args(),
+                                               "--size", size, "--duration", str(duration),
+                                               "--record-every", record_every,
                                                "--label-latency", 20, "--label-jitter", 10, "--out", client_out),
                        out / "client.log", echo=not quiet, nice=client_nice, cpus=cpus)
         children.append(client)
@@ -217,9 +277,9 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
         if compare:
             for child in reversed(children):      # the virtual-time run gets the machine to itself
                 child.stop()
-            v = virtual_twin(out / "virtual", size, duration, quiet)
+            v = virtual_twin(out / "virtual", view, quiet)
             ratio = s["flip"] / v["flip"] if s.get("flip") is not None and v.get("flip") else None
-            print(f"demo: the same walk in virtual time (quadcast eval --scene builtin:courtyard --trace builtin:walk "
+            print(f"demo: the same trace in virtual time (quadcast eval {' '.join(map(str, view.trace_args()))} "
                   f"--method quasar --latency 20 --jitter 10 --size {size} --frames {v['display_frames']} --every "
                   f"{v['every']}): {v['mbps']:.2f} Mbps, {v['server_frames'] / (v['display_frames'] / 60):.1f} "
                   f"server frames/s, FLIP {fmt(v['flip'], '.4f')}  SSIM {fmt(v['ssim'], '.4f')}  PSNR "
@@ -227,7 +287,7 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
                   f"(report -> {out / 'virtual' / 'report.html'})")
             if s.get("server_frames"):
                 frame_ms = round(1e3 * s["duration_s"] / s["server_frames"], 1)
-                slow = virtual_twin(out / "virtual_live_rate", size, duration, quiet, server_frame_ms=frame_ms)
+                slow = virtual_twin(out / "virtual_live_rate", view, quiet, server_frame_ms=frame_ms)
                 ratio = s["flip"] / slow["flip"] if s.get("flip") is not None and slow.get("flip") else None
                 print(f"demo: again with the server taking the live run's {frame_ms:g} ms a frame received "
                       f"(... --server-frame-ms {frame_ms:g}): "
@@ -248,14 +308,16 @@ def run_demo(out: Path, quiet: bool = False, size: str = "480x270", duration: fl
         signal.signal(signal.SIGTERM, previous)
 
 
-def virtual_twin(out: Path, size: str, duration: float, quiet: bool = False, server_frame_ms: float = 0.0) -> dict:
-    """The demo's run in virtual time: quasar, builtin:walk in builtin:courtyard, `duration` s at 60 Hz, 20±10 ms,
-    about 60 frames scored; the server keeps its 30 Hz whatever the machine's speed, or, with `server_frame_ms`,
-    takes that much virtual time per frame. Returns its summary."""
+def virtual_twin(out: Path, view: DemoView = DemoView(), quiet: bool = False, server_frame_ms: float = 0.0) -> dict:
+    """The demo's run in virtual time: quasar on `view` (its trace in its scene, its duration at 60 Hz, its size),
+    20±10 ms, about 60 frames scored; the server keeps its 30 Hz whatever the machine's speed, or, with
+    `server_frame_ms`, takes that much virtual time per frame. Returns its summary."""
     from quadcast.render.camera import parse_size
     from quadcast.sim.evaluate import EvalSpec, run_eval
-    w, h = parse_size(size)
-    frames = int(round(duration * 60))
-    spec = EvalSpec(scene="builtin:courtyard", trace="builtin:walk", method="quasar", latency_ms=20.0, jitter_ms=10.0,
-                    width=w, height=h, frames=frames, every=max(1, frames // 60), server_frame_ms=server_frame_ms)
+    view = view.resolved()
+    w, h = parse_size(view.size)
+    frames = max(1, int(round(view.duration * 60)))
+    spec = EvalSpec(scene=view.scene, trace=view.trace, anchor=view.anchor, start=view.start, method="quasar",
+                    latency_ms=20.0, jitter_ms=10.0, width=w, height=h, frames=frames, every=max(1, frames // 60),
+                    server_frame_ms=server_frame_ms)
     return run_eval(spec, out, quiet=quiet)
