@@ -110,6 +110,24 @@ class QuasarSettings:
         return max(2 * b, int(self.height * self.far_scale) // b * b)
 
 
+@dataclass
+class _FrameViews:
+    """What one frame rendered (`QuasarServer._render_views`), for its atlas and its quad passes: the main `camera`
+    at time `t`; `gbs`, the visible layer's G-buffer and the hidden layers' (those of a frame that renders them); the
+    wide view (`wide_gb` seen by `wide_cam`); on a residual frame, the reference view rendered again within `region`
+    where the scene moved (`ref_gb`, None where nothing did); on a reference frame, the far field (`fresh_far`)."""
+
+    camera: Camera
+    t: float
+    is_reference: bool
+    gbs: list[GBuffer]
+    wide_gb: GBuffer
+    wide_cam: Camera
+    ref_gb: GBuffer | None = None
+    region: tuple[int, int, int, int] = (0, 0, 0, 0)
+    fresh_far: FarField | None = None
+
+
 class QuasarServer(MethodServer):
     name = "quasar"
 
@@ -273,13 +291,40 @@ class QuasarServer(MethodServer):
         return kept is None or len(kept[1]) != len(self.layer_renderer.hidden) or self.frame_id - kept[0] >= every
 
     def encode(self, pose: Pose, t: float) -> FramePayload:
-        s, ctx = self.s, self.ctx
         ms: dict[str, float] = {}
         timings = QuadTimings()
         camera = self.camera_for(pose)
         is_reference = self._needs_reference(camera)
 
         t0 = time.perf_counter()
+        views = self._render_views(camera, t, is_reference)
+        ms["gbuffers"] = (time.perf_counter() - t0) * 1e3
+
+        # The atlas holds every layer's colour, all lit by now; its coding needs nothing the quad passes make.
+        t0 = time.perf_counter()
+        video_job = self._code_atlas(views)
+        video_ms = (time.perf_counter() - t0) * 1e3
+        try:
+            payload = self._quads_and_geometry(views, timings, ms)
+        except BaseException:
+            # x264 has taken this frame, which is never sent: the next frame is a reference frame (an IDR)
+            self._force_reference = True
+            video_job.exception()
+            raise
+        t0 = time.perf_counter()
+        video = video_job.result()
+        ms["video"] = video_ms + (time.perf_counter() - t0) * 1e3
+        frame_type, geometry, qframe = payload
+        stats = quad_stats(qframe, ms, cache_quads=len(self.cache))
+        payload = FramePayload(Method.QUASAR, self.frame_id, frame_type, self.reference_id, float(t),
+                               camera.pose.position, camera.pose.quat, video.data, geometry,
+                               self_contained=is_reference and video.keyframe, stats=stats)
+        self.frame_id += 1
+        return payload
+
+    def _render_views(self, camera: Camera, t: float, is_reference: bool) -> _FrameViews:
+        """Every G-buffer this frame needs, lit, the GPU finished."""
+        s = self.s
         # Every view's geometry pass first (the sun's shadow map before them), then the passes that sample them
         # (lighting, the peel). Sampling what a pass drew makes llvmpipe wait until it is rasterized; in this order
         # its threads rasterize the earlier views while the later ones are drawn, where a view lit right after its
@@ -314,36 +359,13 @@ class QuasarServer(MethodServer):
             self.renderer.lighting_pass(ref_gb, t, region)
         if fresh_far is not None:
             fresh_far.light(t)
-        ctx.finish()
-        ms["gbuffers"] = (time.perf_counter() - t0) * 1e3
+        self.ctx.finish()
+        return _FrameViews(camera, t, is_reference, gbs, wide_gb, wide_cam, ref_gb, region, fresh_far)
 
-        # The atlas holds every layer's colour, all lit by now; its coding needs nothing the quad passes make.
-        t0 = time.perf_counter()
-        video_job = self._code_atlas(gbs, wide_gb, is_reference)
-        video_ms = (time.perf_counter() - t0) * 1e3
-        try:
-            payload = self._quads_and_geometry(camera, t, is_reference, gbs, wide_gb, wide_cam, ref_gb, region,
-                                               fresh_far, timings, ms)
-        except BaseException:
-            # x264 has taken this frame, which is never sent: the next frame is a reference frame (an IDR)
-            self._force_reference = True
-            video_job.exception()
-            raise
-        t0 = time.perf_counter()
-        video = video_job.result()
-        ms["video"] = video_ms + (time.perf_counter() - t0) * 1e3
-        frame_type, geometry, qframe = payload
-        stats = quad_stats(qframe, ms, cache_quads=len(self.cache))
-        payload = FramePayload(Method.QUASAR, self.frame_id, frame_type, self.reference_id, float(t),
-                               camera.pose.position, camera.pose.quat, video.data, geometry,
-                               self_contained=is_reference and video.keyframe, stats=stats)
-        self.frame_id += 1
-        return payload
-
-    def _code_atlas(self, gbs: list[GBuffer], wide_gb: GBuffer, is_reference: bool) -> Future:
+    def _code_atlas(self, views: _FrameViews) -> Future:
         """Compose this frame's colour atlas, read it back and code it: on the video thread
         (`code_video_beside_quads`), else here. On a reference frame the visible layer becomes the reference view."""
-        L = self.layout
+        L, gbs, wide_gb, is_reference = self.layout, views.gbs, views.wide_gb, views.is_reference
         self.atlas.clear()
         self.atlas.draw((gbs[0] if is_reference else self.reference_gbuffer).color, L.reference)
         if not is_reference:
@@ -367,12 +389,10 @@ class QuasarServer(MethodServer):
             job.set_exception(exc)
         return job
 
-    def _quads_and_geometry(self, camera: Camera, t: float, is_reference: bool, gbs: list[GBuffer], wide_gb: GBuffer,
-                            wide_cam: Camera, ref_gb: GBuffer | None, region: tuple[int, int, int, int],
-                            fresh_far: FarField | None, timings: QuadTimings,
+    def _quads_and_geometry(self, views: _FrameViews, timings: QuadTimings,
                             ms: dict[str, float]) -> tuple[FrameType, bytes, QuadFrame]:
         """The frame's quads for every layer, the client's cache kept (§3.5), and the geometry blob."""
-        s = self.s
+        s, L = self.s, self.layout
 
         def quads(gb, cam, params, mask=None, generator=None, inner=None):
             q, tm = (generator or self.generator).generate(gb.position, gb.normal, cam, params, mask, inner)
@@ -383,85 +403,92 @@ class QuasarServer(MethodServer):
             """A hidden layer's or the wide view's quads, their depths at fill_depth_bits."""
             return q if s.fill_depth_bits is None else q.with_depth_bits(s.fill_depth_bits)
 
-        L = self.layout
-        cam_floats = camera.to_array()
-        layers: list[QuadLayer] = []
         # "cache": keeping the client's cache -- on a reference frame its reset and the reference view's depths and
         # ids; on a residual frame what changed in it and the mesh draw that finds what it does not cover -- less
         # the quad passes it runs (timed as theirs)
         t0, quad_ms = time.perf_counter(), timings.total
-        if is_reference:
-            visible = quads(gbs[0], camera, self.visible_params)
-            layers.append(QuadLayer(LayerKind.VISIBLE, s.width, s.height, cam_floats, L.reference, visible))
-            self.cache.reset(visible)
-            self.reference_camera = camera
-            self.reference_depth = gbs[0].read_depth()
-            self.reference_ids = gbs[0].read_object_id()
-            # This view's G-buffer becomes the reference view's (later frames re-render only what moves in it).
-            self.reference_gbuffer, self.layer_renderer.visible = gbs[0], self.reference_gbuffer
-            self._reference_time = t
-            self.reference_id = self.frame_id
-            self.frames_since_reference = 1  # frames sent since, and including, the reference
-            self._force_reference = False
-        else:
-            ref_cam = self.reference_camera
-            updated = QuadSet.empty()
-            if ref_gb is not None:
-                # Geometry that changed in the reference view since it was cached (§3.5.2), within the region.
-                x, y, w, h = region
-                rows, cols = slice(y, y + h), slice(x, x + w)
-                depth_now, ids_now = ref_gb.read_depth(region), ref_gb.read_object_id(region)
-                depth_ref, ids_ref = self.reference_depth[rows, cols], self.reference_ids[rows, cols]
-                with np.errstate(invalid="ignore"):
-                    changed_here = (ids_now != ids_ref) | ~(
-                        np.abs(depth_now - depth_ref) <= s.change_threshold * np.minimum(depth_now, depth_ref))
-                changed_here &= ~(np.isinf(depth_now) & np.isinf(depth_ref))
-                if changed_here.any():
-                    changed = np.zeros_like(self.reference_ids, bool)
-                    changed[rows, cols] = changed_here
-                    updated = quads(ref_gb, ref_cam, self.visible_params, mask=changed)
-                    depth_ref[changed_here] = depth_now[changed_here]
-                    ids_ref[changed_here] = ids_now[changed_here]
-                self.cache.update(updated)
-            # Geometry revealed at the new pose: not covered by the cached mesh (§3.5.1), grown by
-            # reveal_expansion_px (QUASAR's boundary expansion; off by default).
-            self.mesh.build([MeshLayer(self.cache.quads, ref_cam, L.reference, edit=self.cache.edit)],
-                            (L.width, L.height))
-            self.mesh_view.render(self.mesh, camera)
-            mesh_depth = self.mesh_view.read_depth()
-            depth = gbs[0].read_depth()
-            with np.errstate(invalid="ignore"):
-                revealed = np.isinf(mesh_depth) | (depth < mesh_depth * (1 - s.change_threshold))
-            for _ in range(s.reveal_expansion_px):
-                revealed = grow_mask(revealed)
-            if self.far_field is not None and s.far_split_m > 0:
-                revealed &= ~(depth > s.far_split_m)       # far geometry (and revealed sky) is the far field's
-            rev = quads(gbs[0], camera, self.visible_params, mask=revealed) if revealed.any() else QuadSet.empty()
-            layers.append(QuadLayer(LayerKind.UPDATED, s.width, s.height, ref_cam.to_array(), L.reference, updated))
-            layers.append(QuadLayer(LayerKind.REVEALED, s.width, s.height, cam_floats, L.current, rev))
-            self.frames_since_reference += 1
+        layers = (self._reference_layers if views.is_reference else self._residual_layers)(views, quads)
         ms["cache"] = (time.perf_counter() - t0) * 1e3 - (timings.total - quad_ms)
         if self._kept_hidden is not None:
             layers += self._kept_hidden[1]
         else:
-            hidden_cam = self.layer_renderer.hidden_camera(camera)
-            for gb, rect in zip(gbs[1:], L.hidden):
+            hidden_cam = self.layer_renderer.hidden_camera(views.camera)
+            for gb, rect in zip(views.gbs[1:], L.hidden):
                 hidden = fill(quads(gb, hidden_cam, self.hidden_params, generator=self.hidden_generator))
                 layers.append(QuadLayer(LayerKind.HIDDEN, hidden_cam.width, hidden_cam.height,
                                         hidden_cam.to_array(), rect, hidden))
             self._kept_hidden = (self.frame_id, [layer for layer in layers if layer.kind == LayerKind.HIDDEN])
-        wide = fill(quads(wide_gb, wide_cam, self.hidden_params, generator=self.wide_generator, inner=camera))
+        wide_cam = views.wide_cam
+        wide = fill(quads(views.wide_gb, wide_cam, self.hidden_params, generator=self.wide_generator,
+                          inner=views.camera))
         layers.append(QuadLayer(LayerKind.WIDE, wide_cam.width, wide_cam.height, wide_cam.to_array(), L.wide, wide))
-        if fresh_far is not None:
-            layers += fresh_far.layers(L.far)                # sent with reference frames; the client keeps them
+        if views.fresh_far is not None:
+            layers += views.fresh_far.layers(L.far)          # sent with reference frames; the client keeps them
         ms.update(quads=timings.quads, merge=timings.merge, gather=timings.gather)
 
         t0 = time.perf_counter()
-        frame_type = FrameType.REFERENCE if is_reference else FrameType.RESIDUAL
+        frame_type = FrameType.REFERENCE if views.is_reference else FrameType.RESIDUAL
         qframe = QuadFrame(layers)
         geometry = encode_quad_frame(qframe, s.zstd_level, s.depth_bits)
         ms["zstd"] = (time.perf_counter() - t0) * 1e3
         return frame_type, geometry, qframe
+
+    def _reference_layers(self, views: _FrameViews, quads) -> list[QuadLayer]:
+        """A reference frame's visible layer; the client's cache starts again from it, and this view becomes the
+        reference view. `quads(gb, camera, params, mask=None)` runs the quad passes."""
+        s, camera, gb = self.s, views.camera, views.gbs[0]
+        visible = quads(gb, camera, self.visible_params)
+        self.cache.reset(visible)
+        self.reference_camera = camera
+        self.reference_depth = gb.read_depth()
+        self.reference_ids = gb.read_object_id()
+        # This view's G-buffer becomes the reference view's (later frames re-render only what moves in it).
+        self.reference_gbuffer, self.layer_renderer.visible = gb, self.reference_gbuffer
+        self._reference_time = views.t
+        self.reference_id = self.frame_id
+        self.frames_since_reference = 1  # frames sent since, and including, the reference
+        self._force_reference = False
+        return [QuadLayer(LayerKind.VISIBLE, s.width, s.height, camera.to_array(), self.layout.reference, visible)]
+
+    def _residual_layers(self, views: _FrameViews, quads) -> list[QuadLayer]:
+        """A residual frame's updated layer (what changed in the reference view, §3.5.2) and revealed layer (what
+        the cached mesh does not cover at this pose, §3.5.1), the client's cache kept. `quads` as above."""
+        s, L, camera, ref_cam, ref_gb = self.s, self.layout, views.camera, self.reference_camera, views.ref_gb
+        updated = QuadSet.empty()
+        if ref_gb is not None:
+            # Geometry that changed in the reference view since it was cached (§3.5.2), within the region.
+            x, y, w, h = views.region
+            rows, cols = slice(y, y + h), slice(x, x + w)
+            depth_now, ids_now = ref_gb.read_depth(views.region), ref_gb.read_object_id(views.region)
+            depth_ref, ids_ref = self.reference_depth[rows, cols], self.reference_ids[rows, cols]
+            with np.errstate(invalid="ignore"):
+                changed_here = (ids_now != ids_ref) | ~(
+                    np.abs(depth_now - depth_ref) <= s.change_threshold * np.minimum(depth_now, depth_ref))
+            changed_here &= ~(np.isinf(depth_now) & np.isinf(depth_ref))
+            if changed_here.any():
+                changed = np.zeros_like(self.reference_ids, bool)
+                changed[rows, cols] = changed_here
+                updated = quads(ref_gb, ref_cam, self.visible_params, mask=changed)
+                depth_ref[changed_here] = depth_now[changed_here]
+                ids_ref[changed_here] = ids_now[changed_here]
+            self.cache.update(updated)
+        # Geometry revealed at the new pose: not covered by the cached mesh (§3.5.1), grown by reveal_expansion_px
+        # (QUASAR's boundary expansion; off by default).
+        self.mesh.build([MeshLayer(self.cache.quads, ref_cam, L.reference, edit=self.cache.edit)],
+                        (L.width, L.height))
+        self.mesh_view.render(self.mesh, camera)
+        mesh_depth = self.mesh_view.read_depth()
+        depth = views.gbs[0].read_depth()
+        with np.errstate(invalid="ignore"):
+            revealed = np.isinf(mesh_depth) | (depth < mesh_depth * (1 - s.change_threshold))
+        for _ in range(s.reveal_expansion_px):
+            revealed = grow_mask(revealed)
+        if self.far_field is not None and s.far_split_m > 0:
+            revealed &= ~(depth > s.far_split_m)       # far geometry (and revealed sky) is the far field's
+        rev = quads(views.gbs[0], camera, self.visible_params, mask=revealed) if revealed.any() else QuadSet.empty()
+        self.frames_since_reference += 1
+        return [QuadLayer(LayerKind.UPDATED, s.width, s.height, ref_cam.to_array(), L.reference, updated),
+                QuadLayer(LayerKind.REVEALED, s.width, s.height, camera.to_array(), L.current, rev)]
 
     def close(self) -> None:
         if self._video_thread is not None:
