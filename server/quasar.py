@@ -323,7 +323,8 @@ class QuasarServer(MethodServer):
         return payload
 
     def _render_views(self, camera: Camera, t: float, is_reference: bool) -> _FrameViews:
-        """Every G-buffer this frame needs, lit, the GPU finished."""
+        """Every G-buffer this frame needs, lit, the GPU finished. A frame that renders the hidden layers anew
+        (`_hidden_due`) forgets the kept ones here; the reference view's moving region is rendered at `t`."""
         s = self.s
         # Every view's geometry pass first (the sun's shadow map before them), then the passes that sample them
         # (lighting, the peel). Sampling what a pass drew makes llvmpipe wait until it is rasterized; in this order
