@@ -9,7 +9,8 @@ import sys
 import pytest
 
 from quadcast.cli import build_parser
-from quadcast.cli.demo import CLIENT_CORES, CLIENT_NICE, DEMO_SECONDS, Child, DemoView, client_cpus, virtual_twin
+from quadcast.cli.demo import (CLIENT_CORES, CLIENT_NICE, DEMO_SECONDS, Child, DemoView, client_cpus, run_demo,
+                               virtual_twin)
 from quadcast.render.traces import TraceError, resolve_trace
 
 
@@ -47,6 +48,22 @@ def test_the_demo_follows_another_trace_in_another_scene(tmp_path):
     assert (s["scene"], s["trace"], s["anchor"], s["display_frames"]) == ("builtin:courtyard-static", str(trace),
                                                                           "spawn", 30)
     assert s["start_s"] == view.start and s["frames"] >= 1 and 0.0 < s["flip"] < 1.0
+
+
+def test_the_live_demo_runs_on_the_scene_and_trace_it_is_given(tmp_path, capsys):
+    """Server, link and client as processes, the server rendering the scene given and the client following the
+    trace given from its fastest second (no virtual-time replay: the tests above cover it)."""
+    trace = tmp_path / "orbit.txt"
+    resolve_trace("builtin:orbit").window(0.0, 3.0).save(trace)
+    view = DemoView(scene="builtin:courtyard-static", trace=str(trace), anchor="spawn", start="fastest",
+                    duration=1.0, size="160x90")
+    assert run_demo(tmp_path / "demo", quiet=False, view=view, compare=False) == 0     # children's lines echoed
+    s = json.loads((tmp_path / "demo" / "client" / "summary.json").read_text())
+    assert (s["scene"], s["trace"], s["size"]) == ("builtin:courtyard-static", str(trace), "160x90")
+    assert s["start_s"] == pytest.approx(view.resolved().start) and s["server_frames"] >= 1 and s["frames"] >= 1
+    out = capsys.readouterr().out
+    assert "scene builtin:courtyard-static" in out                     # the server's ready line
+    assert f"on {trace} in builtin:courtyard-static at 160x90" in out
 
 
 def test_what_the_demo_follows_is_checked_before_it_starts(tmp_path):
