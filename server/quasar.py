@@ -113,9 +113,10 @@ class QuasarSettings:
 @dataclass
 class _FrameViews:
     """What one frame rendered (`QuasarServer._render_views`), for its atlas and its quad passes: the main `camera`
-    at time `t`; `gbs`, the visible layer's G-buffer and the hidden layers' (those of a frame that renders them); the
-    wide view (`wide_gb` seen by `wide_cam`); on a residual frame, the reference view rendered again within `region`
-    where the scene moved (`ref_gb`, None where nothing did); on a reference frame, the far field (`fresh_far`)."""
+    at time `t`; `gbs`, the visible layer's G-buffer and the hidden layers' (on a frame that sends the kept hidden
+    layers again, the G-buffers they were made from, which hold their colour); the wide view (`wide_gb` seen by
+    `wide_cam`); on a residual frame, the reference view rendered again within `region` where the scene moved
+    (`ref_gb`, None where nothing did); on a reference frame, the far field (`fresh_far`)."""
 
     camera: Camera
     t: float
@@ -410,15 +411,13 @@ class QuasarServer(MethodServer):
         t0, quad_ms = time.perf_counter(), timings.total
         layers = (self._reference_layers if views.is_reference else self._residual_layers)(views, quads)
         ms["cache"] = (time.perf_counter() - t0) * 1e3 - (timings.total - quad_ms)
-        if self._kept_hidden is not None:
-            layers += self._kept_hidden[1]
-        else:
+        if self._kept_hidden is None:               # rendered this frame (`_hidden_due`): make and keep their quads
             hidden_cam = self.layer_renderer.hidden_camera(views.camera)
-            for gb, rect in zip(views.gbs[1:], L.hidden):
-                hidden = fill(quads(gb, hidden_cam, self.hidden_params, generator=self.hidden_generator))
-                layers.append(QuadLayer(LayerKind.HIDDEN, hidden_cam.width, hidden_cam.height,
-                                        hidden_cam.to_array(), rect, hidden))
-            self._kept_hidden = (self.frame_id, [layer for layer in layers if layer.kind == LayerKind.HIDDEN])
+            self._kept_hidden = (self.frame_id, [
+                QuadLayer(LayerKind.HIDDEN, hidden_cam.width, hidden_cam.height, hidden_cam.to_array(), rect,
+                          fill(quads(gb, hidden_cam, self.hidden_params, generator=self.hidden_generator)))
+                for gb, rect in zip(views.gbs[1:], L.hidden)])
+        layers += self._kept_hidden[1]
         wide_cam = views.wide_cam
         wide = fill(quads(views.wide_gb, wide_cam, self.hidden_params, generator=self.wide_generator,
                           inner=views.camera))
