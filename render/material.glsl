@@ -44,7 +44,10 @@ vec4 sample_albedo() {
 void write_gbuffer() {
     vec4 tex = sample_albedo();
     vec3 albedo = srgb_to_linear(tex.rgb) * u_base_color.rgb;
-    vec3 n = normalize(v_view_normal);
+    // Where the vertex normals give no direction (a mesh's zero normals, or ones cancelling across the triangle:
+    // render/scene.py repairs what it can), the surface faces the eye: a NaN normal would make NaN quads and light.
+    vec3 n = v_view_normal;
+    n = normalize(dot(n, n) > 1e-12 ? n : -v_view_pos);
     if (!gl_FrontFacing) n = -n;           // two-sided surfaces (thin railings, planes)
     if (dot(n, -v_view_pos) < 0.0) n = -n;  // the normal faces the camera
     f_albedo = vec4(albedo + u_emissive, length(u_emissive));

@@ -77,6 +77,25 @@ class Mesh:
                 raise SceneError(f"mesh {self.name!r}: {len(self.uvs)} uvs for {len(self.positions)} positions")
         if len(self.indices) and self.indices.max() >= len(self.positions):
             raise SceneError(f"mesh {self.name!r}: index {self.indices.max()} out of range")
+        bad = ~np.isfinite(self.positions).all(axis=1)
+        if bad.any():
+            raise SceneError(f"mesh {self.name!r}: {int(bad.sum())} of {len(bad)} vertex positions are not finite "
+                             f"(the first is vertex {int(np.argmax(bad))})")
+        self._repair_normals()
+
+    def _repair_normals(self) -> None:
+        """Normals that are not finite or have no length (files have them; so do vertices whose faces' normals
+        cancel) become the vertex normals of the mesh's faces. One still without a direction stays zero: the
+        geometry pass then takes the normal of the face it draws (render/material.glsl)."""
+        n = self.normals
+        bad = ~(np.isfinite(n).all(axis=1) & (np.einsum("ij,ij->i", n, n) > 1e-12))
+        if not bad.any():
+            return
+        import trimesh   # only for a mesh that needs it
+        faces = trimesh.Trimesh(self.positions, self.indices, process=False).vertex_normals
+        n = n.copy()
+        n[bad] = np.nan_to_num(faces[bad], nan=0.0, posinf=0.0, neginf=0.0)
+        self.normals = np.ascontiguousarray(n, np.float32)
 
     @classmethod
     def from_trimesh(cls, tm, material: Material, name: str | None = None) -> "Mesh":

@@ -39,6 +39,30 @@ def test_plane_depth_matches_analytic(plane_renderer):
     assert (frame.object_id == 1).all()
 
 
+def test_a_surface_whose_normals_give_no_direction_faces_the_eye(ctx):
+    """Vertex normals that are zero where the geometry pass draws (set after the scene's repair, as cancelling
+    ones would be) give the G-buffer a normal facing the eye, not NaN: NaN normals made NaN quads, and the server
+    failed every frame that saw them."""
+    from quadcast.server.quasar import QuasarServer, QuasarSettings
+    scene = scene_from_dict({"models": [{"primitive": "plane", "size": [40, 40], "rotation_deg": [90, 0, 0],
+                                         "position": [0, 0, -4], "color": [0.6, 0.6, 0.6]}],
+                             "sun": {"direction": [0, 0, -1]}})
+    scene.objects[0].mesh.normals[:] = 0.0
+    renderer = DeferredRenderer(scene, ctx)
+    pose = Pose([0, 0, 1])
+    frame = renderer.render(Camera.perspective(pose, 64, 36, fovy_deg=60))
+    assert np.isfinite(frame.normal).all() and np.isfinite(frame.color).all()
+    x, y = np.meshgrid(np.arange(64) + 0.5 - 32, 18 - (np.arange(36) + 0.5))
+    rays = np.dstack([-x, -y, np.full_like(x, 18 / np.tan(np.radians(30)))])   # from the surface to the eye
+    assert np.allclose(frame.normal, rays / np.linalg.norm(rays, axis=2, keepdims=True), atol=2e-3)
+    server = QuasarServer(renderer, QuasarSettings(width=64, height=36))
+    try:
+        payload = server.encode(pose, 0.0)
+    finally:
+        server.close()
+    assert payload.stats.quads > 0
+
+
 def test_each_object_is_drawn_with_its_own_albedo_source(ctx):
     """The geometry pass draws an object with the program variant for where its albedo comes from (no texture,
     the texture at mesh UVs, triplanar): three walls with one base colour, the same half-red half-blue texture on

@@ -84,6 +84,23 @@ def test_gltf_textured_mesh_round_trip(tmp_path):
     assert mesh.material.texture[..., 0].mean() > 150
 
 
+def test_mesh_normals_without_a_direction_are_repaired_and_bad_positions_refused():
+    """Zero or NaN normals (files have them) become the faces' normals; the others are kept as given; a vertex
+    position that is not finite is an error naming the mesh."""
+    from quadcast.render.scene import Material, Mesh
+    box = trimesh.creation.box()
+    normals = np.array(box.vertex_normals, np.float32) * 2.0     # not unit: kept as given
+    normals[0] = 0.0
+    normals[1] = np.nan
+    mesh = Mesh("box", box.vertices, normals, box.faces, Material())
+    assert np.allclose(mesh.normals[:2], box.vertex_normals[:2], atol=1e-6)
+    assert np.array_equal(mesh.normals[2:], normals[2:])
+    positions = np.array(box.vertices)
+    positions[5, 1] = np.inf
+    with pytest.raises(SceneError, match=r"mesh 'box': 1 of 8 vertex positions are not finite \(the first is vertex 5\)"):
+        Mesh("box", positions, box.vertex_normals, box.faces, Material())
+
+
 # ------------------------------------------------------------------------------------------ spawn points
 
 def test_spawn_points_and_traces_placed_there(tmp_path, courtyard):
