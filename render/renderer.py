@@ -20,6 +20,10 @@ from quadcast.render.scene import Scene
 
 HERE = Path(__file__).resolve().parent
 
+COARSE_MIN_TRIANGLES = 256
+"""`DeferredRenderer.coarse_meshes` keeps at least this many triangles of a mesh: decimating a small one saves
+nothing."""
+
 CullFn = Callable[[moderngl.Texture], None]
 """A cull step for a draw routine (`DeferredRenderer.geometry_pass`, `quadcast.render.quadmesh.MeshView.render`):
 called with the target's depth attachment after it is cleared to 1, it writes depth 0 where nothing may be drawn
@@ -159,8 +163,14 @@ class GBuffer:
             obj.release()
 
 
+def _box_corners(lo, hi) -> np.ndarray:
+    """(8, 3) float64: the corners of the box from `lo` to `hi`."""
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], np.float64)
+
+
 class _GpuMesh:
-    def __init__(self, ctx, mesh, shadow_prog, white):
+    def __init__(self, ctx, mesh, shadow_prog, white, texture: moderngl.Texture | None = None):
+        """A mesh's buffers; `texture`, when given, is its material's texture already uploaded (a coarse mesh's)."""
         pos = mesh.positions
         uvs = mesh.uvs if mesh.uvs is not None else np.zeros((len(pos), 2), np.float32)
         # One buffer per attribute: llvmpipe is far slower with a padded interleaved layout in the shadow pass.
@@ -170,12 +180,12 @@ class _GpuMesh:
         self.ibo = ctx.buffer(mesh.indices.astype("u4").tobytes())
         self._vaos: dict[int, moderngl.VertexArray] = {}
         self.ctx = ctx
-        lo, hi = pos.min(axis=0), pos.max(axis=0)
-        self.box_corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                                     for z in (lo[2], hi[2])], np.float64)     # object space
+        self.box_corners = _box_corners(pos.min(axis=0), pos.max(axis=0))     # object space
         self.shadow_vao = ctx.vertex_array(shadow_prog, [(self.positions, "3f", "in_position")], self.ibo)
         mat = mesh.material
-        if mat.texture is not None:
+        if texture is not None:
+            self.texture = texture
+        elif mat.texture is not None:
             img = np.ascontiguousarray(mat.texture[::-1])  # GL's first row is the bottom one
             self.texture = ctx.texture((img.shape[1], img.shape[0]), img.shape[2], img.tobytes())
             self.texture.build_mipmaps()
@@ -300,6 +310,7 @@ class DeferredRenderer:
         self._floor: float | None = None                # the scene's lowest point (moving_region's shadows)
         self._animated_objects = [i for i, o in enumerate(scene.objects) if o.animation is not None]
         self._gbuffers: dict[tuple[int, int], GBuffer] = {}
+        self._coarse: dict[float, list[_GpuMesh]] = {}   # coarse_meshes, per detail
 
     # ----------------------------------------------------------------------------------------- passes
     def light_view_projection(self) -> np.ndarray:
@@ -424,6 +435,30 @@ class DeferredRenderer:
         placed.t = t
         return placed
 
+    def coarse_meshes(self, detail: float) -> list["_GpuMesh"]:
+        """Every object's mesh with about `detail` (0, 1] of its triangles (`Mesh.simplified`; at least
+        `COARSE_MIN_TRIANGLES`, a smaller mesh whole), for views too small to show them all; made on first use.
+        Each object's box grows to hold both meshes, so culling by box stays exact for either."""
+        if not 0 < detail <= 1:
+            raise ValueError(f"mesh detail must be in (0, 1], got {detail}")
+        if detail == 1:
+            return self.meshes
+        if detail not in self._coarse:
+            coarse = []
+            for o, gm in zip(self.scene.objects, self.meshes):
+                count = len(o.mesh.indices)
+                target = max(int(round(detail * count)), COARSE_MIN_TRIANGLES)
+                if target >= count:
+                    coarse.append(gm)
+                    continue
+                cm = _GpuMesh(self.ctx, o.mesh.simplified(target), self.shadow_prog, self.white, gm.texture)
+                corners = np.concatenate([gm.box_corners, cm.box_corners])
+                gm.box_corners = cm.box_corners = _box_corners(corners.min(axis=0), corners.max(axis=0))
+                coarse.append(cm)
+            self._coarse[detail] = coarse
+            self._placement = None      # the boxes may have grown
+        return self._coarse[detail]
+
     def _box_clip(self, camera: Camera, t: float) -> np.ndarray:
         """(n_objects, 8, 4): each object's bounding-box corners at time t in `camera`'s clip space."""
         return self._objects_at(t).boxes @ camera.view_projection().T
@@ -448,19 +483,22 @@ class DeferredRenderer:
         return front & (px.min(1) >= rx) & (px.max(1) <= rx + rw) & (py.min(1) >= ry) & (py.max(1) <= ry + rh)
 
     def draw_geometry(self, camera: Camera, t: float, prog: MaterialProgram | None = None,
-                      closed_back_faces: bool = True, exclude: tuple[int, int, int, int] | None = None) -> None:
+                      closed_back_faces: bool = True, exclude: tuple[int, int, int, int] | None = None,
+                      detail: float = 1.0) -> None:
         """Draw every object with `prog` (the G-buffer program unless given; each object with the variant for its
         albedo source) into the bound framebuffer; objects wholly outside the camera's frustum are skipped
         (`visible_objects`), and with `exclude` (a rect, see `geometry_pass`) those wholly inside it
         (`objects_within`). `closed_back_faces=False` leaves out the back faces of closed meshes
-        (`_GpuMesh.orientation`), which no eye outside them can see."""
+        (`_GpuMesh.orientation`), which no eye outside them can see. `detail` < 1 draws the coarse meshes
+        (`coarse_meshes`)."""
+        meshes = self.coarse_meshes(detail)
         prog = prog or self.geometry_prog
         set_uniforms(prog, u_view=gl_matrix(camera.view_matrix()), u_proj=gl_matrix(camera.projection_matrix()))
         visible = self.visible_objects(camera, t)
         if _has_area(exclude):
             visible &= ~self.objects_within(camera, t, exclude)
         placed = self._objects_at(t)
-        for obj, gm, shown, model, mirrored in zip(self.scene.objects, self.meshes, visible, placed.model_bytes,
+        for obj, gm, shown, model, mirrored in zip(self.scene.objects, meshes, visible, placed.model_bytes,
                                                    placed.mirrored):
             if not shown:
                 continue
@@ -488,7 +526,7 @@ class DeferredRenderer:
                       prog: MaterialProgram | None = None, cull: CullFn | None = None,
                       region: tuple[int, int, int, int] | None = None,
                       closed_back_faces: bool = True,
-                      exclude: tuple[int, int, int, int] | None = None) -> GBuffer:
+                      exclude: tuple[int, int, int, int] | None = None, detail: float = 1.0) -> GBuffer:
         """Fill a G-buffer (the renderer's own for this size unless `target` is given). `prog` may replace the
         G-buffer program with a `MaterialProgram` of its own (e.g. the server's depth peeling); bind its
         extra textures to units >= 4 before calling. `cull` (see `CullFn`) restricts the pass to the pixels it
@@ -496,7 +534,7 @@ class DeferredRenderer:
         (x, y, w, h, pixels from the top-left corner) renders only there: the rest of the G-buffer keeps what it
         held. `exclude` (x, y, w, h, from the top-left; with `region` None) leaves that rectangle cleared, with
         nothing hit and depth 1, so a `geometry_only` lighting pass skips it too; objects wholly inside it are not
-        drawn. `closed_back_faces=False`: see `draw_geometry`."""
+        drawn. `closed_back_faces=False` and `detail`: see `draw_geometry`."""
         gb = target or self.gbuffer_for(camera.width, camera.height)
         gb.geometry_fbo.use()
         if region is None:
@@ -516,7 +554,7 @@ class DeferredRenderer:
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-        self.draw_geometry(camera, t, prog, closed_back_faces, exclude=exclude if excluded else None)
+        self.draw_geometry(camera, t, prog, closed_back_faces, exclude=exclude if excluded else None, detail=detail)
         gb.geometry_fbo.scissor = None
         if excluded:
             gb.geometry_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=_gl_rect(exclude, gb.height))

@@ -54,6 +54,10 @@ class Material:
     emissive: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
 
 
+KEPT_AREA = 0.75
+"""`Mesh.simplified` keeps at least this fraction of the mesh's area."""
+
+
 @dataclass
 class Mesh:
     """Triangles in object space: positions/normals (N, 3) float32, uvs (N, 2) or None, indices (M, 3) uint32."""
@@ -64,6 +68,7 @@ class Mesh:
     indices: np.ndarray
     material: Material
     uvs: np.ndarray | None = None
+    _simplified: dict = field(default_factory=dict, init=False, repr=False, compare=False)   # simplified()'s
 
     def __post_init__(self):
         self.positions = np.ascontiguousarray(self.positions, np.float32).reshape(-1, 3)
@@ -96,6 +101,47 @@ class Mesh:
         n = n.copy()
         n[bad] = np.nan_to_num(faces[bad], nan=0.0, posinf=0.0, neginf=0.0)
         self.normals = np.ascontiguousarray(n, np.float32)
+
+    def simplified(self, triangles: int) -> "Mesh":
+        """This mesh decimated to about `triangles` triangles (quadric edge collapses, fast_simplification), with
+        the same material; each vertex keeps the normal and UV of one of the original vertices collapsed into it,
+        and at least `KEPT_AREA` of the surface is kept (with more triangles where needed). The mesh itself where
+        it has no more than `triangles`; made once per count (the scene's renderers share it)."""
+        if triangles < 1:
+            raise ValueError(f"mesh {self.name!r}: cannot simplify to {triangles} triangles")
+        if len(self.indices) <= triangles:
+            return self
+        if triangles not in self._simplified:
+            # A decimation that loses much of the surface (small separate parts collapsed away) is done again
+            # with twice the triangles, until the mesh itself is all that is left.
+            mesh, area, target = self, self.area(), triangles
+            while target < len(self.indices):
+                mesh = self._decimated(target)
+                if mesh.area() >= KEPT_AREA * area:
+                    break
+                mesh, target = self, 2 * target
+            self._simplified[triangles] = mesh
+        return self._simplified[triangles]
+
+    def _decimated(self, triangles: int) -> "Mesh":
+        import fast_simplification
+        # Vertices at one position are welded first: a mesh stored as separate triangles shares no edge to
+        # collapse, and the decimation would remove its triangles one by one.
+        welded, first, inverse = np.unique(self.positions, axis=0, return_index=True, return_inverse=True)
+        faces = inverse.reshape(-1)[self.indices].astype(np.int32)
+        _, _, collapses = fast_simplification.simplify(welded, faces, target_count=int(triangles),
+                                                       return_collapses=True)
+        positions, faces, mapping = fast_simplification.replay_simplification(welded, faces, collapses)
+        source = np.empty(len(positions), np.intp)
+        source[mapping[::-1]] = np.arange(len(mapping))[::-1]     # the first welded vertex of each new one
+        source = first[source]                                    # ... and its first original vertex
+        return Mesh(self.name, positions, self.normals[source], faces, self.material,
+                    None if self.uvs is None else self.uvs[source])
+
+    def area(self) -> float:
+        """The total area of the triangles (object space)."""
+        a, b, c = (self.positions[self.indices[:, k]].astype(np.float64) for k in range(3))
+        return float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2)
 
     @classmethod
     def from_trimesh(cls, tm, material: Material, name: str | None = None) -> "Mesh":

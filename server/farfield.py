@@ -92,8 +92,13 @@ def range_grid_faces(camera: Camera, depths: np.ndarray, block: int, max_depth: 
 class FarField:
     """Renders the cube map of a view cell and makes its quad layers (see the module docstring)."""
 
-    def __init__(self, renderer: DeferredRenderer, size: int, block: int, max_depth: float):
+    def __init__(self, renderer: DeferredRenderer, size: int, block: int, max_depth: float, detail: float = 1.0):
+        """`detail` < 1 draws the faces from the scene's coarse meshes (`DeferredRenderer.coarse_meshes`): a face
+        is `size` pixels across 90°, too few to show every triangle of a detailed scene, and llvmpipe pays for each
+        one (the monastery's six faces took 52 ms at 64x64, docs/speed.md, stop 51)."""
         self.renderer, self.size, self.block, self.max_depth = renderer, size, block, max_depth
+        self.detail = float(detail)
+        renderer.coarse_meshes(self.detail)      # made now, not in the first reference frame
         self.gbuffers = [GBuffer(renderer.ctx, size, size) for _ in FACE_DIRECTIONS]
         self.cameras: list[Camera] = []
 
@@ -103,7 +108,7 @@ class FarField:
         QuasarServer.encode)."""
         self.cameras = face_cameras(position, self.size, near, far)
         for camera, gb in zip(self.cameras, self.gbuffers):
-            self.renderer.geometry_pass(camera, t, target=gb)
+            self.renderer.geometry_pass(camera, t, target=gb, detail=self.detail)
 
     def light(self, t: float) -> None:
         """The six faces' lighting passes, after `draw_geometry`."""

@@ -63,6 +63,10 @@ class QuasarSettings:
     far_scale: float = 0.25              # its face size, relative to the view's height ...
     far_block: int = 16                  # ... in whole blocks of this many pixels (its quads)
     far_split_m: float = 0.0             # > 0: geometry farther than this gets no quads (the far field shows it)
+    # ... drawn from meshes with about this fraction of their triangles (DeferredRenderer.coarse_meshes; 1: every
+    # one). Its faces are a few dozen pixels across, and llvmpipe pays per triangle: the monastery's six faces 51 ms
+    # -> 16 ms; FLIP within 0.0001 of every triangle's, or better, on six evals (docs/speed.md, stop 51).
+    far_detail: float = 0.1
     connectivity: float = 0.001          # EDP: relative depth gap that is still the same surface
     change_threshold: float = 0.01       # relative depth change that makes a reference pixel "updated"
     # QUASAR's boundary expansion (§3.5.1) of the revealed region, in pixels. Off by default: on the real-trace
@@ -100,6 +104,8 @@ class QuasarSettings:
             raise ValueError(f"wide_turn_dps must be >= 0, got {self.wide_turn_dps}")
         if self.far_block < 2 or self.far_block & (self.far_block - 1):
             raise ValueError(f"far_block must be a power of 2 >= 2, got {self.far_block}")
+        if not 0 < self.far_detail <= 1:
+            raise ValueError(f"far_detail must be in (0, 1], got {self.far_detail}")
 
     @property
     def far_size(self) -> int:
@@ -139,7 +145,8 @@ class QuasarServer(MethodServer):
         self.layout = AtlasLayout.for_view(s.width, s.height, s.layers - 1, (probe.width, probe.height),
                                            s.hidden_scale, s.far_size)
         far = self.camera_for(Pose([0, 0, 0])).frustum.far
-        self.far_field = FarField(renderer, s.far_size, s.far_block, 0.9 * far) if s.far_field else None
+        self.far_field = FarField(renderer, s.far_size, s.far_block, 0.9 * far,
+                                  s.far_detail) if s.far_field else None
         hidden_size = self.layout.hidden[0][2:] if self.layout.hidden else (s.width, s.height)
         self.layer_renderer = LayerRenderer(renderer, s.width, s.height, s.layers, hidden_size)
         self._generators: dict[tuple[int, int], QuadGenerator] = {}

@@ -3,6 +3,7 @@ drawn by the client behind everything, so that turning away from what was sent s
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 import pytest
 from scipy.spatial.transform import Rotation
 
@@ -139,3 +140,42 @@ def test_no_pixel_is_left_uncovered_where_cube_faces_meet(courtyard_renderer):
                 uncovered.append(int((~np.isfinite(client.view.read_depth())).sum()))
     server.close()
     assert sum(uncovered) == 0, uncovered
+
+
+def test_a_far_field_of_coarse_meshes_draws_fewer_triangles_and_sees_the_same_surroundings(ctx):
+    """`FarField(detail=0.1)` draws the scene's coarse meshes (a 20,480-triangle sphere as about a tenth of them,
+    small meshes whole): its faces see the same range and colour as with every triangle, near enough for a
+    background behind everything; the objects' boxes grow to hold both meshes."""
+    from quadcast.render.renderer import DeferredRenderer
+    from quadcast.render.scene import scene_from_dict
+    from quadcast.server.farfield import FarField
+    from quadcast.server.quasar import QuasarSettings
+    scene = scene_from_dict({"models": [
+        {"primitive": "sphere", "radius": 2.0, "position": [0, 1, -6], "color": [0.8, 0.3, 0.2]},
+        {"primitive": "plane", "size": [40, 40], "color": [0.5, 0.6, 0.5]}], "sun": {"direction": [-0.3, -1, -0.2]}})
+    sphere = scene.objects[0].mesh
+    sphere_full = trimesh.creation.icosphere(subdivisions=5)
+    scene.objects[0].mesh = type(sphere)("sphere", sphere_full.vertices * 2.0, sphere_full.vertex_normals,
+                                         sphere_full.faces, sphere.material)
+    renderer = DeferredRenderer(scene, ctx)
+    with pytest.raises(ValueError, match="detail"):
+        renderer.coarse_meshes(0.0)
+    with pytest.raises(ValueError, match="far_detail must be in"):
+        QuasarSettings(far_detail=1.5)
+    assert renderer.coarse_meshes(1.0) is renderer.meshes
+    full, coarse = FarField(renderer, 64, 16, 100.0), FarField(renderer, 64, 16, 100.0, detail=0.1)
+    big, plane = renderer.coarse_meshes(0.1)
+    assert 1500 < len(big._mesh.indices) < 2600 and plane is renderer.meshes[1]
+    lo, hi = renderer.meshes[0].box_corners.min(0), renderer.meshes[0].box_corners.max(0)
+    assert (big._mesh.positions >= lo - 1e-6).all() and (big._mesh.positions <= hi + 1e-6).all()
+    seen = []
+    for far in (full, coarse):
+        far.draw_geometry([0.0, 1.6, 0.0], 0.0, 0.1, 100.0)
+        far.light(0.0)
+        seen.append((np.stack([gb.read_depth() for gb in far.gbuffers]),
+                     np.stack([gb.read_color() for gb in far.gbuffers]).astype(float)))
+    (z_full, c_full), (z_coarse, c_coarse) = seen
+    hit = np.isfinite(z_full) & np.isfinite(z_coarse)
+    assert (np.isfinite(z_full) == np.isfinite(z_coarse)).mean() > 0.99
+    assert np.median(np.abs(z_coarse[hit] - z_full[hit]) / z_full[hit]) < 0.01
+    assert np.abs(c_coarse - c_full).mean() < 3.0 and not np.array_equal(c_coarse, c_full)

@@ -97,8 +97,30 @@ def test_mesh_normals_without_a_direction_are_repaired_and_bad_positions_refused
     assert np.array_equal(mesh.normals[2:], normals[2:])
     positions = np.array(box.vertices)
     positions[5, 1] = np.inf
-    with pytest.raises(SceneError, match=r"mesh 'box': 1 of 8 vertex positions are not finite \(the first is vertex 5\)"):
+    with pytest.raises(SceneError, match=r"'box': 1 of 8 vertex positions are not finite \(the first is vertex 5\)"):
         Mesh("box", positions, box.vertex_normals, box.faces, Material())
+
+
+def test_simplified_meshes_keep_their_surface_and_their_vertices_attributes():
+    """`Mesh.simplified`: about the triangles asked for, at least KEPT_AREA of the area, each vertex with the normal
+    and UV of an original vertex; a mesh stored as separate triangles (no shared vertex) is welded first, so it
+    keeps its surface; a mesh already small enough is itself; each count is made once."""
+    from quadcast.render.scene import KEPT_AREA, Material, Mesh
+    ico = trimesh.creation.icosphere(4)                      # 5120 triangles on the unit sphere
+    mesh = Mesh("ico", ico.vertices, ico.vertex_normals, ico.faces, Material(), uvs=ico.vertices[:, :2] + 1.0)
+    coarse = mesh.simplified(500)
+    assert 400 <= len(coarse.indices) <= 600 and coarse.area() >= KEPT_AREA * mesh.area()
+    assert np.abs(np.linalg.norm(coarse.positions, axis=1) - 1.0).max() < 0.05
+    originals = {tuple(v) for v in np.c_[mesh.normals, mesh.uvs].round(6)}
+    assert {tuple(v) for v in np.c_[coarse.normals, coarse.uvs].round(6)} <= originals
+    assert mesh.simplified(500) is coarse and mesh.simplified(6000) is mesh
+    soup = ico.vertices[ico.faces].reshape(-1, 3)
+    separate = Mesh("soup", soup, np.repeat(ico.face_normals, 3, axis=0), np.arange(len(soup)).reshape(-1, 3),
+                    Material())
+    welded = separate.simplified(500)
+    assert len(welded.indices) <= 600 and welded.area() >= 0.95 * separate.area()
+    with pytest.raises(ValueError, match="cannot simplify to 0 triangles"):
+        mesh.simplified(0)
 
 
 # ------------------------------------------------------------------------------------------ spawn points
