@@ -64,8 +64,9 @@ class QuasarSettings:
     far_block: int = 16                  # ... in whole blocks of this many pixels (its quads)
     far_split_m: float = 0.0             # > 0: geometry farther than this gets no quads (the far field shows it)
     # ... drawn from meshes with about this fraction of their triangles (DeferredRenderer.coarse_meshes; 1: every
-    # one). Its faces are a few dozen pixels across, and llvmpipe pays per triangle: the monastery's six faces 51 ms
-    # -> 16 ms; FLIP within 0.0001 of every triangle's, or better, on six evals (docs/speed.md, stop 51).
+    # one). Its faces are a few dozen pixels across, and llvmpipe pays per triangle: the monastery's six faces 55 ms
+    # -> 23 ms; FLIP within 0.0001 of every triangle's, or better, on five of six evals, +0.0006 on the sixth
+    # (docs/speed.md, stop 51).
     far_detail: float = 0.1
     connectivity: float = 0.001          # EDP: relative depth gap that is still the same surface
     change_threshold: float = 0.01       # relative depth change that makes a reference pixel "updated"
