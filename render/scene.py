@@ -112,12 +112,12 @@ class Mesh:
         if len(self.indices) <= triangles:
             return self
         if triangles not in self._simplified:
-            # A decimation that loses much of the surface (small separate parts collapsed away) is done again
-            # with twice the triangles, until the mesh itself is all that is left.
+            # A decimation that loses much of the surface (small separate parts collapsed away), or every
+            # triangle, is done again with twice the triangles, until the mesh itself is all that is left.
             mesh, area, target = self, self.area(), triangles
             while target < len(self.indices):
                 mesh = self._decimated(target)
-                if mesh.area() >= KEPT_AREA * area:
+                if len(mesh.indices) and mesh.area() >= KEPT_AREA * area:
                     break
                 mesh, target = self, 2 * target
             self._simplified[triangles] = mesh

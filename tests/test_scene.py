@@ -121,6 +121,9 @@ def test_simplified_meshes_keep_their_surface_and_their_vertices_attributes():
     assert len(welded.indices) <= 600 and welded.area() >= 0.95 * separate.area()
     with pytest.raises(ValueError, match="cannot simplify to 0 triangles"):
         mesh.simplified(0)
+    flat = Mesh("flat", np.zeros((100, 3)), np.tile([0.0, 0.0, 1.0], (100, 1)),
+                np.random.default_rng(0).integers(0, 100, (600, 3)), Material())
+    assert flat.simplified(60) is flat                      # no area to keep: not decimated to nothing
 
 
 # ------------------------------------------------------------------------------------------ spawn points
