@@ -91,7 +91,7 @@ class Mesh:
     def _repair_normals(self) -> None:
         """Normals that are not finite or have no length (files have them; so do vertices whose faces' normals
         cancel) become the vertex normals of the mesh's faces. One still without a direction stays zero: the
-        geometry pass then takes the normal of the face it draws (render/material.glsl)."""
+        geometry pass then turns the surface towards the eye (render/material.glsl)."""
         n = self.normals
         bad = ~(np.isfinite(n).all(axis=1) & (np.einsum("ij,ij->i", n, n) > 1e-12))
         if not bad.any():
