@@ -3,6 +3,7 @@ import csv
 import json
 import re
 
+import numpy as np
 import pytest
 
 from quadcast.render.traces import TraceError, resolve_trace
@@ -162,3 +163,24 @@ def test_a_gaze_trace_moves_the_foveal_score(tmp_path):
     gaze.write_text("0 100 0\n")
     with pytest.raises(ValueError, match="within"):
         run_eval(EvalSpec(method="quasar", point=point, gaze=str(gaze), **TINY))
+
+
+def test_eval_start_fastest_picks_the_traces_fastest_motion_over_the_replay(tmp_path, capsys):
+    """`quadcast eval --start fastest`: the start of the trace's fastest motion over the replay's --frames at 60 Hz
+    (here a head still for 10 s but for a 90° turn from 6 to 7 s), printed; the whole trace where it is shorter."""
+    from quadcast.cli import _eval_spec, build_parser
+    t = np.arange(601) / 60.0
+    yaw = np.interp(t, [0.0, 6.0, 7.0, 10.0], [0.0, 0.0, 90.0, 90.0])
+    path = tmp_path / "turn.txt"
+    path.write_text("".join(f"0 1.6 0 0 {y:.4f} 0 {1000 * s:.3f}\n" for s, y in zip(t, yaw)))
+    parser = build_parser()
+    spec = _eval_spec(parser.parse_args(["eval", "--trace", str(path), "--start", "fastest", "--frames", "60",
+                                         "--out", str(tmp_path / "out")]))
+    assert spec.start == pytest.approx(6.0, abs=1 / 60)
+    assert "start at 6.00 s" in capsys.readouterr().out
+    whole = parser.parse_args(["eval", "--trace", str(path), "--start", "fastest", "--frames", "900", "--out", "x"])
+    assert _eval_spec(whole).start == 0.0
+    assert parser.parse_args(["eval", "--start", "1.5", "--out", "x"]).start == 1.5
+    with pytest.raises(SystemExit):
+        parser.parse_args(["eval", "--start", "soon", "--out", "x"])
+    assert "not seconds or 'fastest': 'soon'" in capsys.readouterr().err

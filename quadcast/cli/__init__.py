@@ -184,7 +184,7 @@ def _client_nice(text: str) -> int:
 
 
 def _demo_start(text: str) -> float | str:
-    """argparse type of ``demo --start``: seconds, or ``fastest``."""
+    """argparse type of ``demo --start`` and ``eval --start``: seconds, or ``fastest``."""
     if text.strip().lower() == "fastest":
         return "fastest"
     try:
@@ -209,7 +209,15 @@ def _eval_spec(args):
     from quadcast.sim.evaluate import EvalSpec
     from quadcast.sim.link import parse_loss, parse_rate_mbit
     w, h = parse_size(args.size)
-    return EvalSpec(scene=args.scene, trace=args.trace, anchor=args.anchor, start=args.start, method=args.method,
+    start = args.start
+    if start == "fastest":
+        from quadcast.render.traces import resolve_trace
+        trace = resolve_trace(args.trace)
+        # the replay's display frames at 60 Hz, or the whole trace if it is shorter
+        start = trace.fastest_window(min(args.frames / 60.0, trace.duration))
+        print(f"eval: the fastest {min(args.frames / 60.0, trace.duration):g} s of {args.trace} start at "
+              f"{start:.2f} s (--start {start})", flush=True)
+    return EvalSpec(scene=args.scene, trace=args.trace, anchor=args.anchor, start=start, method=args.method,
                     latency_ms=args.latency,
                     jitter_ms=args.jitter, rate_mbit=parse_rate_mbit(args.rate) if args.rate else None,
                     loss=parse_loss(args.loss) if args.loss else 0.0, viewcell_m=args.viewcell, width=w, height=h,
@@ -323,11 +331,15 @@ def cmd_demo(args) -> int:
 
 # -------------------------------------------------------------------------------------------------- main
 
-def add_trace_placement(p: argparse.ArgumentParser, start: bool = True) -> None:
-    """``--anchor`` (and ``--start``) of the commands that follow a trace."""
+def add_trace_placement(p: argparse.ArgumentParser, start: bool = True, fastest: bool = False) -> None:
+    """``--anchor`` (and ``--start``; with `fastest`, seconds or ``fastest``) of the commands that follow a trace."""
     p.add_argument("--anchor", help="re-anchor the trace into the scene: 'spawn' (the scene's spawn point) or "
                                     "'x,y,z[,yaw_deg]'; its pose at --start goes there, its motion stays relative")
-    if start:
+    if start and fastest:
+        p.add_argument("--start", type=_demo_start, default=0.0,
+                       help="trace time to start at, seconds, or 'fastest': the start of the trace's fastest motion "
+                            "over the replay's --frames at 60 Hz")
+    elif start:
         p.add_argument("--start", type=float, default=0.0, help="trace time to start at, seconds")
 
 
@@ -376,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="replay a trace under simulated latency; Mbps and FLIP/SSIM/PSNR per trace")
     p.add_argument("--scene", default="builtin:courtyard")
     p.add_argument("--trace", default="builtin:walk")
-    add_trace_placement(p)
+    add_trace_placement(p, fastest=True)
     p.add_argument("--method", default="quasar", choices=["quasar", "quadstream", "meshwarp", "meshwarp120", "atw"])
     p.add_argument("--latency", type=float, default=20.0, help="one-way latency, ms")
     p.add_argument("--jitter", type=float, default=10.0, help="uniform jitter, +- ms")
