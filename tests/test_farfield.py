@@ -3,8 +3,8 @@ drawn by the client behind everything, so that turning away from what was sent s
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 import pytest
+import trimesh
 from scipy.spatial.transform import Rotation
 
 from quadcast.protocol.quads import LayerKind, QuadFrame, decode_quad_frame, encode_quad_frame
