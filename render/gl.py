@@ -139,6 +139,21 @@ def read_buffer(buffer: moderngl.Buffer, size: int) -> bytes:
     return buffer.read(size=size) if size else b""
 
 
+def write_changed_uniforms(prog: moderngl.Program, values) -> None:
+    """Write each (name, bytes) of `values` that `prog` uses, unless these bytes are what this function last wrote
+    to that uniform of that program (kept in `prog.extra`): a draw loop over many objects then writes only what
+    changes from one object to the next. Only for uniforms that nothing else writes."""
+    written = prog.extra
+    if written is None:
+        written = prog.extra = {}
+    for name, data in values:
+        if written.get(name) != data:
+            member = prog.get(name, None)
+            if member is not None:
+                member.write(data)
+            written[name] = data
+
+
 def set_uniforms(prog, **values) -> None:
     """Set the uniforms a program actually uses (the GLSL compiler drops unused ones). Looked up with
     `prog.get` (a dict lookup): `name in prog` walks all of a program's members, which cost the server about 22 ms

@@ -6,6 +6,7 @@ depth, view-space normal, object id). `gbuffer(camera, t)` does the same passes 
 """
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -15,7 +16,8 @@ import numpy as np
 import trimesh
 
 from quadcast.render.camera import Camera, gl_matrix
-from quadcast.render.gl import can_copy_textures, copy_texture, gl_context, program, set_uniforms
+from quadcast.render.gl import (can_copy_textures, copy_texture, gl_context, program, set_uniforms,
+                                write_changed_uniforms)
 from quadcast.render.scene import Scene
 
 HERE = Path(__file__).resolve().parent
@@ -192,6 +194,12 @@ class _GpuMesh:
             self.texture.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
         else:
             self.texture = white
+        # its material's uniforms as the geometry pass writes them (render/material.glsl), (name, bytes) pairs
+        self.material_uniforms = (
+            ("u_texture", struct.pack("i", 0)), ("u_base_color", np.asarray(mat.base_color, np.float32).tobytes()),
+            ("u_uv_scale", struct.pack("f", mat.uv_scale)), ("u_specular", struct.pack("f", mat.specular)),
+            ("u_shininess", struct.pack("f", max(mat.shininess, 1.0))),
+            ("u_emissive", np.asarray(mat.emissive, np.float32).tobytes()))
         # where its albedo comes from (render/material.glsl's ALBEDO): no texture, triplanar or the mesh's UVs
         self.albedo_source = 2 if mat.texture is None else 1 if mat.uv_mode == "triplanar" or mesh.uvs is None else 0
         self.material = mat
@@ -311,6 +319,7 @@ class DeferredRenderer:
         self._animated_objects = [i for i, o in enumerate(scene.objects) if o.animation is not None]
         self._gbuffers: dict[tuple[int, int], GBuffer] = {}
         self._coarse: dict[float, list[_GpuMesh]] = {}   # coarse_meshes, per detail
+        self._object_ids = [struct.pack("i", o.object_id) for o in scene.objects]   # as the geometry pass writes them
 
     # ----------------------------------------------------------------------------------------- passes
     def light_view_projection(self) -> np.ndarray:
@@ -498,8 +507,8 @@ class DeferredRenderer:
         if _has_area(exclude):
             visible &= ~self.objects_within(camera, t, exclude)
         placed = self._objects_at(t)
-        for obj, gm, shown, model, mirrored in zip(self.scene.objects, meshes, visible, placed.model_bytes,
-                                                   placed.mirrored):
+        for object_id, gm, shown, model, mirrored in zip(self._object_ids, meshes, visible, placed.model_bytes,
+                                                         placed.mirrored):
             if not shown:
                 continue
             if not closed_back_faces:
@@ -509,14 +518,10 @@ class DeferredRenderer:
                     self.ctx.cull_face = "back" if sign > 0 else "front"
                 else:
                     self.ctx.disable(moderngl.CULL_FACE)
-            mat = gm.material
             gm.texture.use(0)
             variant = prog.variant(gm.albedo_source)
-            set_uniforms(variant, u_model=model, u_texture=0,
-                         u_base_color=tuple(float(c) for c in mat.base_color),
-                         u_uv_scale=float(mat.uv_scale), u_specular=float(mat.specular),
-                         u_shininess=float(max(mat.shininess, 1.0)),
-                         u_emissive=tuple(float(c) for c in mat.emissive), u_object_id=obj.object_id)
+            write_changed_uniforms(variant, gm.material_uniforms)
+            write_changed_uniforms(variant, (("u_model", model), ("u_object_id", object_id)))
             gm.vao_for(variant).render(moderngl.TRIANGLES)
         if not closed_back_faces:
             self.ctx.disable(moderngl.CULL_FACE)

@@ -91,6 +91,30 @@ def test_each_object_is_drawn_with_its_own_albedo_source(ctx):
         assert np.allclose(wall[1:5], left, atol=1e-3) and np.allclose(wall[-5:-1], right, atol=1e-3), k
 
 
+def test_renderers_sharing_a_context_each_draw_their_own_materials(ctx):
+    """The geometry pass writes an object's material, model and id uniforms only where they differ from what its
+    program last got (`write_changed_uniforms`), and renderers on one context share those programs: two scenes of
+    one wall each, of another colour and place (the second's wall is its second object, so another id), drawn in
+    turn, each draw shows its own."""
+    from quadcast.render.renderer import read_texture
+
+    def wall(x, colour):
+        return {"primitive": "plane", "size": [2, 2], "rotation_deg": [90, 0, 0], "position": [x, 0, -4],
+                "color": colour}
+    behind = {"primitive": "box", "extents": [1, 1, 1], "position": [0, 0, 20], "color": [1, 1, 1]}
+    scenes = [{"models": [wall(-0.6, [0.6, 0.3, 0.2])]}, {"models": [behind, wall(0.6, [0.1, 0.2, 0.7])]}]
+    renderers = [DeferredRenderer(scene_from_dict({**s, "sun": {"direction": [0, 0, -1]}}), ctx) for s in scenes]
+    camera = Camera.perspective(Pose([0, 0, 0]), 64, 16, fovy_deg=30)
+    for k, renderer in [*enumerate(renderers)] * 3:
+        gb = renderer.gbuffer(camera)
+        albedo, ids = read_texture(gb.albedo, 4, "f2")[8, :, :3], read_texture(gb.object_id, 1, "i4")[8]
+        mine = renderer.scene.objects[-1]
+        drawn = np.flatnonzero(ids > 0)
+        assert len(drawn) > 10 and set(ids[drawn]) == {mine.object_id}
+        assert np.allclose(albedo[drawn].astype(np.float32), mine.mesh.material.base_color[:3], atol=1e-3)
+        assert (drawn.mean() < 32) == (k == 0)        # each wall where its own model matrix puts it
+
+
 def test_point_lights_that_cannot_reach_the_view_are_left_out_without_changing_the_image(courtyard_renderer):
     """The lighting pass leaves out point lights whose sphere lies outside the view's frustum (`Frustum.sphere_outside`,
     checked here against points sampled inside the frustum): the same lit image as with every light, at views that
