@@ -139,9 +139,9 @@ class Mesh:
                     None if self.uvs is None else self.uvs[source])
 
     def area(self) -> float:
-        """The total area of the triangles (object space)."""
-        a, b, c = (self.positions[self.indices[:, k]].astype(np.float64) for k in range(3))
-        return float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2)
+        """The total area of the triangles (object space; trimesh's)."""
+        import trimesh
+        return float(trimesh.Trimesh(self.positions, self.indices, process=False).area)
 
     @classmethod
     def from_trimesh(cls, tm, material: Material, name: str | None = None) -> "Mesh":

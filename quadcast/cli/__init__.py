@@ -183,8 +183,8 @@ def _client_nice(text: str) -> int:
     return value
 
 
-def _demo_start(text: str) -> float | str:
-    """argparse type of ``demo --start`` and ``eval --start``: seconds, or ``fastest``."""
+def _trace_start(text: str) -> float | str:
+    """argparse type of ``--start`` where it may be ``fastest`` (demo, eval): seconds, or ``fastest``."""
     if text.strip().lower() == "fastest":
         return "fastest"
     try:
@@ -213,10 +213,9 @@ def _eval_spec(args):
     if start == "fastest":
         from quadcast.render.traces import resolve_trace
         trace = resolve_trace(args.trace)
-        # the replay's display frames at 60 Hz, or the whole trace if it is shorter
-        start = trace.fastest_window(min(args.frames / 60.0, trace.duration))
-        print(f"eval: the fastest {min(args.frames / 60.0, trace.duration):g} s of {args.trace} start at "
-              f"{start:.2f} s (--start {start})", flush=True)
+        window = min(args.frames / 60.0, trace.duration)   # the replay's display frames at 60 Hz, or the whole trace
+        start = trace.fastest_window(window)
+        print(f"eval: the fastest {window:g} s of {args.trace} start at {start:.2f} s (--start {start})", flush=True)
     return EvalSpec(scene=args.scene, trace=args.trace, anchor=args.anchor, start=start, method=args.method,
                     latency_ms=args.latency,
                     jitter_ms=args.jitter, rate_mbit=parse_rate_mbit(args.rate) if args.rate else None,
@@ -331,14 +330,15 @@ def cmd_demo(args) -> int:
 
 # -------------------------------------------------------------------------------------------------- main
 
-def add_trace_placement(p: argparse.ArgumentParser, start: bool = True, fastest: bool = False) -> None:
-    """``--anchor`` (and ``--start``; with `fastest`, seconds or ``fastest``) of the commands that follow a trace."""
+def add_trace_placement(p: argparse.ArgumentParser, start: bool = True, fastest: str | None = None) -> None:
+    """``--anchor`` (and ``--start``) of the commands that follow a trace; with `fastest` (the window it is taken
+    over, for the help), ``--start`` may also be ``fastest``."""
     p.add_argument("--anchor", help="re-anchor the trace into the scene: 'spawn' (the scene's spawn point) or "
                                     "'x,y,z[,yaw_deg]'; its pose at --start goes there, its motion stays relative")
     if start and fastest:
-        p.add_argument("--start", type=_demo_start, default=0.0,
-                       help="trace time to start at, seconds, or 'fastest': the start of the trace's fastest motion "
-                            "over the replay's --frames at 60 Hz")
+        p.add_argument("--start", type=_trace_start, default=0.0,
+                       help=f"trace time to start at, seconds, or 'fastest': the start of the trace's fastest motion "
+                            f"over {fastest}")
     elif start:
         p.add_argument("--start", type=float, default=0.0, help="trace time to start at, seconds")
 
@@ -388,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="replay a trace under simulated latency; Mbps and FLIP/SSIM/PSNR per trace")
     p.add_argument("--scene", default="builtin:courtyard")
     p.add_argument("--trace", default="builtin:walk")
-    add_trace_placement(p, fastest=True)
+    add_trace_placement(p, fastest="the replay's --frames at 60 Hz")
     p.add_argument("--method", default="quasar", choices=["quasar", "quadstream", "meshwarp", "meshwarp120", "atw"])
     p.add_argument("--latency", type=float, default=20.0, help="one-way latency, ms")
     p.add_argument("--jitter", type=float, default=10.0, help="uniform jitter, +- ms")
@@ -458,10 +458,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", default="builtin:courtyard", help="the scene the server renders")
     p.add_argument("--trace", default="builtin:walk", help="the trace the client follows (builtin:NAME or a QUASAR "
                                                            "trace file)")
-    add_trace_placement(p, start=False)
-    p.add_argument("--start", type=_demo_start, default=0.0,
-                   help="trace time to start at, seconds, or 'fastest': the start of its --duration s of fastest "
-                        "motion")
+    add_trace_placement(p, fastest="--duration s")
     p.add_argument("--duration", type=float, help="seconds live (default: 10, or the rest of the trace if shorter)")
     p.add_argument("--size", default="480x270", help="WxH")
     p.add_argument("--client-nice", type=_client_nice, default=None, metavar="N",
