@@ -123,7 +123,7 @@ def test_a_child_can_run_below_this_process_priority(tmp_path):
 
 def test_demo_client_nice_option(capsys):
     parser = build_parser()
-    assert parser.parse_args(["demo"]).client_nice is None and CLIENT_NICE == 10
+    assert parser.parse_args(["demo"]).client_nice is None and CLIENT_NICE == 19
     assert parser.parse_args(["demo", "--client-nice", "0"]).client_nice == 0
     for bad, why in (("20", "must be 0..19"), ("x", "not an integer")):
         with pytest.raises(SystemExit):

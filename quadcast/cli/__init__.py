@@ -462,7 +462,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, help="seconds live (default: 10, or the rest of the trace if shorter)")
     p.add_argument("--size", default="480x270", help="WxH")
     p.add_argument("--client-nice", type=_client_nice, default=None, metavar="N",
-                   help="run the client N below the server's and link's priority, 0..19 (default 10: a headset has "
+                   help="run the client N below the server's and link's priority, 0..19 (default 19: a headset has "
                         "its own processor; here the client shares the server's cores)")
     p.add_argument("--client-cores", type=_client_cores, default=None, metavar="N",
                    help="run the client on the last N of the machine's cores, 0 for all of them (default 1: it "
