@@ -112,24 +112,30 @@ def can_copy_textures() -> bool:
 
 
 def copy_texture(ctx: moderngl.Context, src: moderngl.Texture, dst: moderngl.Texture,
-                 at: tuple[int, int] | None = None) -> None:
+                 at: tuple[int, int] | None = None, rect: tuple[int, int, int, int] | None = None) -> None:
     """Copy a 2D texture's level 0 into another of the same size and format, depth textures too (glCopyImageSubData:
     a raw copy; moderngl has no call for it, and its copy_framebuffer leaves depth alone); with `at`, into the
-    rectangle of `dst` whose lower-left texel is `at` (x, y, GL's bottom-left origin), which must lie within it. `ctx`
-    must be current: an EGL context, as `create_context` makes (the call is looked up through EGL)."""
+    rectangle of `dst` whose lower-left texel is `at` (x, y, GL's bottom-left origin), which must lie within it. With
+    `rect` (x, y, w, h, GL's origin), only that rectangle of `src`, to the same place in `dst` unless `at` is given.
+    `ctx` must be current: an EGL context, as `create_context` makes (the call is looked up through EGL)."""
     if src.dtype != dst.dtype or src.depth != dst.depth or src.components != dst.components or (
-            at is None and src.size != dst.size):
+            at is None and rect is None and src.size != dst.size):
         raise ValueError(f"copy_texture: need the same size and format, got {src.size} {src.dtype} and {dst.size} "
                          f"{dst.dtype}")
-    x, y = (0, 0) if at is None else (int(at[0]), int(at[1]))
-    if not (0 <= x and 0 <= y and x + src.size[0] <= dst.size[0] and y + src.size[1] <= dst.size[1]):
-        raise ValueError(f"copy_texture: a {src.size[0]}x{src.size[1]} texture at {at} does not fit in "
+    sx, sy, w, h = (0, 0, *src.size) if rect is None else (int(v) for v in rect)
+    if not (0 <= sx and 0 <= sy and w >= 0 and h >= 0 and sx + w <= src.size[0] and sy + h <= src.size[1]):
+        raise ValueError(f"copy_texture: rect {rect} is not within the {src.size[0]}x{src.size[1]} source")
+    x, y = (sx, sy) if at is None else (int(at[0]), int(at[1]))
+    if not (0 <= x and 0 <= y and x + w <= dst.size[0] and y + h <= dst.size[1]):
+        raise ValueError(f"copy_texture: a {w}x{h} texture at {(x, y)} does not fit in "
                          f"{dst.size[0]}x{dst.size[1]}")
+    if w == 0 or h == 0:
+        return
     copy = _copy_image_sub_data()
     if copy is None:
         raise GLUnavailableError("copy_texture: glCopyImageSubData is not available from EGL")
     texture_2d = 0x0DE1
-    copy(src.glo, texture_2d, 0, 0, 0, 0, dst.glo, texture_2d, 0, x, y, 0, src.size[0], src.size[1], 1)
+    copy(src.glo, texture_2d, 0, sx, sy, 0, dst.glo, texture_2d, 0, x, y, 0, w, h, 1)
 
 
 def read_buffer(buffer: moderngl.Buffer, size: int) -> bytes:

@@ -313,6 +313,7 @@ class DeferredRenderer:
             self._static_shadow = ctx.depth_texture((shadow_size, shadow_size))
             self._static_shadow_fbo = ctx.framebuffer(depth_attachment=self._static_shadow)
         self._static_shadow_key = None   # the sun's projection the static casters' depth was drawn with
+        self._moved_rect: tuple[int, int, int, int] | None = None   # the shadow-map texels moving casters last wrote
         self._placement: _Placement | None = None       # the objects' matrices and boxes at one time
         self._light_vp: tuple | None = None             # (the sun's parameters, its shadow-map projection)
         self._floor: float | None = None                # the scene's lowest point (moving_region's shadows)
@@ -362,18 +363,36 @@ class DeferredRenderer:
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
         self.ctx.depth_func = "<"
-        casters = [(obj, gm, model) for obj, gm, model in zip(self.scene.objects, self.meshes,
-                                                               self._objects_at(t).models) if obj.cast_shadow]
+        placed = self._objects_at(t)
+        casters = [(obj, gm, model) for obj, gm, model in zip(self.scene.objects, self.meshes, placed.models)
+                   if obj.cast_shadow]
         if self._static_shadow is not None:
             if self._static_shadow_key is not light_vp:
                 self._draw_casters(self._static_shadow_fbo, light_vp, [c for c in casters if c[0].animation is None])
                 self._static_shadow_key = light_vp
-            copy_texture(self.ctx, self._static_shadow, self.shadow_map)
+                self._moved_rect = None
+            # Only the texels the moving casters wrote last time differ from the static casters' depth: those are
+            # copied back (the whole map when unknown), then the moving casters are drawn where they are now.
+            copy_texture(self.ctx, self._static_shadow, self.shadow_map, rect=self._moved_rect)
             self._draw_casters(self.shadow_fbo, light_vp, [c for c in casters if c[0].animation is not None],
                                clear=False)
+            self._moved_rect = self._shadow_rect(light_vp, [box for obj, box in zip(self.scene.objects, placed.boxes)
+                                                            if obj.cast_shadow and obj.animation is not None])
         else:
             self._draw_casters(self.shadow_fbo, light_vp, casters)
         self._shadow_time = t
+
+    def _shadow_rect(self, light_vp: np.ndarray, boxes: list[np.ndarray]) -> tuple[int, int, int, int]:
+        """The shadow-map texels (x, y, w, h, GL's bottom-left origin) that casters within `boxes` ((8, 4) world
+        corners each) can write: the texels around their corners' projection, a texel more on each side."""
+        if not boxes:
+            return (0, 0, 0, 0)
+        size = self.shadow_size
+        xy = (np.concatenate(boxes) @ light_vp.T)[:, :2] * 0.5 + 0.5     # orthographic: w = 1
+        lo = np.clip(np.floor(xy.min(axis=0) * size) - 1, 0, size).astype(int)
+        hi = np.clip(np.ceil(xy.max(axis=0) * size) + 1, 0, size).astype(int)
+        w, h = np.maximum(hi - lo, 0)
+        return (int(lo[0]), int(lo[1]), int(w), int(h))
 
     def _draw_casters(self, fbo: moderngl.Framebuffer, light_vp: np.ndarray, casters: list,
                       clear: bool = True) -> None:

@@ -339,6 +339,19 @@ def test_copy_texture_copies_depth_and_refuses_other_formats(ctx):
     assert np.allclose(values[4:, 8:], 0.25, atol=1e-6) and not np.allclose(values[:4], 0.25, atol=1e-6)
     with pytest.raises(ValueError, match="does not fit"):
         copy_texture(ctx, src, big, at=(9, 4))
+    # a rectangle of the source, to the same place or to `at`
+    other = ctx.depth_texture((16, 8))
+    ofbo = ctx.framebuffer(depth_attachment=other)
+    ofbo.clear(depth=1.0)
+    copy_texture(ctx, big, other, rect=(6, 3, 4, 2))
+    values = np.frombuffer(other.read(), np.float32).reshape(8, 16)
+    assert np.allclose(values[4, 8:10], 0.25, atol=1e-6)         # the part of the rectangle in the quarter
+    assert np.allclose(np.delete(values, np.s_[6:10], axis=1), 1.0)   # nothing outside the rectangle
+    assert np.allclose(values[:3], 1.0) and np.allclose(values[5:], 1.0)
+    copy_texture(ctx, src, other, rect=(0, 0, 2, 2), at=(14, 6))
+    assert np.allclose(np.frombuffer(other.read(), np.float32).reshape(8, 16)[6:, 14:], 0.25, atol=1e-6)
+    with pytest.raises(ValueError, match="not within"):
+        copy_texture(ctx, src, other, rect=(7, 0, 2, 2))
 
 
 @pytest.mark.parametrize("eye, target, shows", [
