@@ -149,9 +149,9 @@ CLIENT_NICE = 19
 """How far below the server and link the demo's client runs. On a real deployment the headset has a processor of
 its own; here the client shares the server's two cores, and at equal priority its 60 Hz display loop took a third
 of the server's frame rate (README, "Live system"). A busy loop on the client's core at nice 10 still made the
-server's frame about a tenth slower, at 19 half that (its rasterizer threads wait for each other at every pass).
-In the demo at 19 the server sent 8.5-9.7 frames a second against 7.9-8.5 at 10, the client showing 21-24 frames
-a second against 23-26 (docs/speed.md, stop 52)."""
+server's frame about a tenth slower, at 19 half that (the server's rasterizer threads wait for each other at every
+pass). In the demo at 19 the server sent 8.5-9.7 frames a second against 7.9-8.5 at 10, the client showing 21-24
+frames a second against 23-26 (docs/speed.md, stop 52)."""
 
 CLIENT_CORES = 1
 """How many of this machine's cores the demo's client may run on (the last ones; 0: all of them). Kept to one core,
