@@ -246,6 +246,18 @@ def _gl_rect(region: tuple[int, int, int, int], height: int) -> tuple[int, int, 
     return (int(x), int(height - y - h), int(w), int(h))
 
 
+def _ndc_rect(ndc: np.ndarray, width: int, height: int, margin_px: int) -> tuple[int, int, int, int]:
+    """The pixels (x, y, w, h, y from the top row) of a `width` x `height` image that hold normalised device
+    coordinates `ndc` ((n, 2), y up), `margin_px` more on each side, within the image; (0, 0, 0, 0) when none."""
+    if not len(ndc):
+        return (0, 0, 0, 0)
+    x0, x1 = (ndc[:, 0].min() + 1) / 2 * width - margin_px, (ndc[:, 0].max() + 1) / 2 * width + margin_px
+    y0, y1 = (1 - ndc[:, 1].max()) / 2 * height - margin_px, (1 - ndc[:, 1].min()) / 2 * height + margin_px
+    x0, y0 = max(0, int(np.floor(x0))), max(0, int(np.floor(y0)))
+    x1, y1 = min(width, int(np.ceil(x1))), min(height, int(np.ceil(y1)))
+    return (x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else (0, 0, 0, 0)
+
+
 def _clip_to_near(clip: np.ndarray, near: float) -> np.ndarray:
     """The clip-space points ((n, 4), w the view depth) of a convex volume's part in front of the near plane
     (w >= `near`), as points whose hull it is: the points in front and, on the plane, where each segment from one
@@ -385,14 +397,8 @@ class DeferredRenderer:
     def _shadow_rect(self, light_vp: np.ndarray, boxes: list[np.ndarray]) -> tuple[int, int, int, int]:
         """The shadow-map texels (x, y, w, h, GL's bottom-left origin) that casters within `boxes` ((8, 4) world
         corners each) can write: the texels around their corners' projection, a texel more on each side."""
-        if not boxes:
-            return (0, 0, 0, 0)
-        size = self.shadow_size
-        xy = (np.concatenate(boxes) @ light_vp.T)[:, :2] * 0.5 + 0.5     # orthographic: w = 1
-        lo = np.clip(np.floor(xy.min(axis=0) * size) - 1, 0, size).astype(int)
-        hi = np.clip(np.ceil(xy.max(axis=0) * size) + 1, 0, size).astype(int)
-        w, h = np.maximum(hi - lo, 0)
-        return (int(lo[0]), int(lo[1]), int(w), int(h))
+        ndc = (np.concatenate(boxes) @ light_vp.T)[:, :2] if boxes else np.zeros((0, 2))   # orthographic: w = 1
+        return _gl_rect(_ndc_rect(ndc, self.shadow_size, self.shadow_size, 1), self.shadow_size)
 
     def _draw_casters(self, fbo: moderngl.Framebuffer, light_vp: np.ndarray, casters: list,
                       clear: bool = True) -> None:
@@ -428,14 +434,7 @@ class DeferredRenderer:
                 visible.append(_clip_to_near(np.c_[world, np.ones(len(world))] @ view_projection,
                                              camera.frustum.near))
         clip = np.concatenate(visible) if visible else np.zeros((0, 4))
-        if not len(clip):
-            return (0, 0, 0, 0)
-        ndc = clip[:, :2] / clip[:, 3:4]
-        x0, x1 = (ndc[:, 0].min() + 1) / 2 * w - margin_px, (ndc[:, 0].max() + 1) / 2 * w + margin_px
-        y0, y1 = (1 - ndc[:, 1].max()) / 2 * h - margin_px, (1 - ndc[:, 1].min()) / 2 * h + margin_px
-        x0, y0 = max(0, int(np.floor(x0))), max(0, int(np.floor(y0)))
-        x1, y1 = min(w, int(np.ceil(x1))), min(h, int(np.ceil(y1)))
-        return (x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else (0, 0, 0, 0)
+        return _ndc_rect(clip[:, :2] / clip[:, 3:4], w, h, margin_px)
 
     def gbuffer_for(self, width: int, height: int) -> GBuffer:
         key = (int(width), int(height))
