@@ -115,6 +115,7 @@ class ClientConfig:
     max_message_bytes: int = 64 * 1024 * 1024
     score: bool = True
     stereo: bool = False                  # also make and record a YORO stereo pair (quasar, quadstream)
+    warm_up: bool = True                  # before connecting, receive and draw made-up frames (MethodClient.warm_up)
     labels: dict = field(default_factory=dict)   # copied into the summary (e.g. the link's latency_ms)
 
     def __post_init__(self) -> None:
@@ -376,6 +377,10 @@ class LiveClient:
                                                                   fovy_deg=cfg.fovy_deg), self.worker.ctx)
         if cfg.stereo and not hasattr(self.method_client, "stereo_frame"):
             raise ValueError(f"--stereo: the {cfg.method} client cannot synthesize an eye")
+        if cfg.warm_up:
+            t0 = time.perf_counter()
+            self.method_client.warm_up()       # before connecting: the first frame should not wait for compiling
+            log.info("warmed up in %.0f ms", (time.perf_counter() - t0) * 1e3)
 
     def _apply(self, payload: FramePayload) -> tuple[bool, bool, str]:
         """On the GL thread: apply one frame; (applied, the method client needs a reference, why not applied)."""

@@ -11,13 +11,15 @@ import numpy as np
 from quadcast.client.method import Coverage, MethodClient
 from quadcast.client.stereo import STEREO_MODES, MeshStereo, StereoFrame
 from quadcast.codec.decoder import AtlasDecoder, VideoError
+from quadcast.codec.encoder import AtlasEncoder
+from quadcast.codec.picture import YuvPicture
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload, FrameType, Method
 from quadcast.protocol.methods import MAX_ATLAS_VIEWS
-from quadcast.protocol.quads import LayerKind, QuadFrame, decode_quad_frame
+from quadcast.protocol.quads import LayerKind, QuadFrame, QuadLayer, QuadSet, decode_quad_frame, encode_quad_frame
 from quadcast.render.atlas_texture import AtlasTexture
 from quadcast.render.camera import DEFAULT_IPD_M, Camera, Frustum, Pose
-from quadcast.render.gl import gl_context
+from quadcast.render.gl import WARM_UP_SIZE, gl_context
 from quadcast.render.quadcache import QuadCache
 from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 
@@ -28,6 +30,40 @@ from quadcast.render.quadmesh import MeshLayer, MeshView, QuadMesh
 FILL_DEPTH_SCALE = {LayerKind.HIDDEN: 1.003, LayerKind.WIDE: 1.02, LayerKind.FAR: 2.0}
 """How far behind the main layer each fill-in layer is drawn (a factor on view depth along the eye ray): the
 far field lies behind everything."""
+
+
+def warm_up_frames(method: Method, width: int, height: int) -> list[tuple[FramePayload, Pose]]:
+    """Two made-up frames of a `width` x `height` client, and the pose to draw each at: a reference frame (a grey
+    wall 5 m in front of the camera as 2-pixel quads, every seventh with depth offsets) and a residual frame that
+    updates the middle of the cached wall (freeing the quads it covers) and reveals a strip. Their atlas is coded
+    by x264 like a server's."""
+    camera = Camera(Pose(np.zeros(3)), Frustum.symmetric(60.0, width / height), width, height)
+
+    def wall(x0, x1, y0, y1, size_log2=1, depth=5.0):
+        s = 1 << size_log2
+        xs, ys = np.meshgrid(np.arange(x0, x1, s), np.arange(y0, y1, s))
+        n = xs.size
+        flattened = np.arange(n) % 7 != 0
+        return QuadSet(xs.ravel(), ys.ravel(), np.full(n, size_log2), flattened, np.zeros(n, bool),
+                       np.tile([0.0, 0.0, 1.0], (n, 1)), np.full(n, depth), np.zeros((int((~flattened).sum()), 16)))
+
+    def layer(kind, quads, rect):
+        return QuadLayer(kind, width, height, camera.to_array(), rect, quads)
+
+    reference, current = (0, 0, width, height), (width, 0, width, height)
+    frames = [(FrameType.REFERENCE, [layer(LayerKind.VISIBLE, wall(0, width, 0, height), reference)]),
+              (FrameType.RESIDUAL, [layer(LayerKind.UPDATED, wall(width // 4, width // 2, height // 4, height // 2),
+                                          reference),
+                                    layer(LayerKind.REVEALED, wall(0, width // 8, 0, height, depth=4.0), current)])]
+    grey = YuvPicture(np.full((height, 2 * width), 128, np.uint8), *[np.full((height // 2, width), 128, np.uint8)] * 2)
+    out = []
+    with AtlasEncoder(2 * width, height) as encoder:
+        for frame_id, (frame_type, layers) in enumerate(frames):
+            video = encoder.encode(grey, keyframe=frame_type == FrameType.REFERENCE).data
+            out.append((FramePayload(method, frame_id, frame_type, 0, 0.1 * frame_id, camera.pose.position,
+                                     camera.pose.quat, video, encode_quad_frame(QuadFrame(layers)),
+                                     self_contained=frame_type == FrameType.REFERENCE), camera.pose))
+    return out
 
 
 class QuasarClient(MethodClient):
@@ -174,6 +210,22 @@ class QuasarClient(MethodClient):
             x, y, w, h = layer.atlas_rect
             if x + w > atlas_w or y + h > atlas_h:
                 raise ProtocolError(f"layer {i}: atlas rect {layer.atlas_rect} outside the {atlas_w}x{atlas_h} video")
+
+    def warm_up(self) -> None:
+        """Receive and draw :func:`warm_up_frames` on a client of :data:`WARM_UP_SIZE` on this client's context, whose
+        mesh finds runs in every layer (none of those small layers would reach QuadMesh's threshold), then drop it:
+        on llvmpipe this client's first frame then does not wait for its shaders to compile (docs/speed.md, stop
+        53). This client's own state is untouched; the throwaway client's GL objects (under 2 MB) stay on the
+        context."""
+        probe = QuasarClient(*WARM_UP_SIZE, ctx=self.ctx, method=self.method)
+        probe.mesh.min_run_quads = 0
+        try:
+            for payload, pose in warm_up_frames(self.method, *WARM_UP_SIZE):
+                probe.receive(payload)
+                probe.render(pose)
+                probe.coverage()
+        finally:
+            probe.close()
 
     def close(self) -> None:
         """Stop the decoding thread (the GL objects go with the context)."""

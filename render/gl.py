@@ -22,6 +22,15 @@ class GLUnavailableError(RuntimeError):
     """Headless OpenGL could not start."""
 
 
+WARM_UP_SIZE = (200, 112)
+"""The size of the made-up frames a live server's spare workers and a live client run before their first session or
+frame (quadcast.server.app.SessionHost, quadcast.client.quasar.QuasarClient.warm_up), so that llvmpipe compiles the
+shaders before a real frame waits for them: small, and neither it nor its half (a server's hidden layers) has a side
+that is a power of two. llvmpipe compiles a shader variant per state, and whether a texture's sides are powers of
+two is part of it: warmed up at 64x36, a 480x270 session's first frames still waited for half of their compiling
+(docs/speed.md, stop 53)."""
+
+
 @functools.lru_cache(maxsize=1)
 def gl_context() -> moderngl.Context:
     """The process's headless GL context (created on first use)."""

@@ -40,8 +40,10 @@ import hmac
 import ipaddress
 import itertools
 import logging
+import math
 import os
 import ssl
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -56,6 +58,7 @@ from quadcast.protocol.methods import METHODS, MethodConfig
 from quadcast.protocol.rate import RateConfig, load_ladder
 from quadcast.protocol.session import EncodeFrame, ServerCounters, ServerSession, ServerSessionConfig
 from quadcast.render.camera import Pose
+from quadcast.render.gl import WARM_UP_SIZE
 from quadcast.render.worker import GLWorker, ProcessWorker, WorkerDied, WorkerError
 from quadcast.transport.channel import Channel, TcpChannel
 from quadcast.transport.tls import server_context
@@ -102,6 +105,9 @@ class ServerConfig:
     # worker processes kept booted for the next sessions (worker="process"): all of them while no session runs;
     # while sessions run, one is booted when the last spare is claimed (LiveServer.claim_process)
     spare_workers: int = 2
+    # a spare worker booted while no session runs first encodes a few small frames of every method served and
+    # drops them (SessionHost), so that a session's first frames do not wait for llvmpipe to compile shaders
+    warm_up: bool = True
     adapt: bool = False                 # rate controller: each frame's operating point from the receive reports
     target_mbps: float | None = None    # the rate controller's ceiling (implies adapt)
     ladder: str | None = None           # the operating points (default: the measured ladder shipped)
@@ -186,6 +192,23 @@ class PipelineSpec:
     crf: float | None
 
 
+WARM_UP_FRAMES = 3
+"""A reference frame and two residual frames: every pass a session's frames run."""
+
+
+def warm_up_path(scene, frames: int = WARM_UP_FRAMES, dt: float = 0.1) -> list[tuple[Pose, float]]:
+    """(pose, scene time) pairs for a warm-up: from the scene's spawn point, 0.15 m forward and 4 degrees to the
+    left at each step, `dt` seconds apart, so that the residual frames reveal something."""
+    x, y, z = scene.spawn.position
+    out = []
+    for k in range(frames):
+        yaw = scene.spawn.yaw_deg + 4.0 * k
+        step = 0.15 * k
+        position = (x - step * math.sin(math.radians(yaw)), y, z - step * math.cos(math.radians(yaw)))
+        out.append((Pose.from_euler(position, 0.0, yaw), dt * k))
+    return out
+
+
 class SessionPipeline:
     """A session's renderer and method server: what its worker (process or thread) runs.
 
@@ -195,11 +218,13 @@ class SessionPipeline:
     self-contained, and the server's figures for it.
     """
 
-    def __init__(self, spec: PipelineSpec, ctx=None, scene=None) -> None:
+    def __init__(self, spec: PipelineSpec, ctx=None, scene=None, renderer=None) -> None:
+        """`renderer`: a :class:`~quadcast.render.renderer.DeferredRenderer` of the scene to draw with (a worker's
+        that warmed up), else one is made."""
         from quadcast.render.renderer import DeferredRenderer
         from quadcast.render.scene import load_scene
         self.spec = spec
-        self.renderer = DeferredRenderer(scene if scene is not None else load_scene(spec.scene), ctx)
+        self.renderer = renderer or DeferredRenderer(scene if scene is not None else load_scene(spec.scene), ctx)
         config = MethodConfig(width=spec.width, height=spec.height, fovy_deg=spec.fovy_deg,
                               viewcell_radius=spec.viewcell_m, reference_every=spec.reference_every, crf=spec.crf)
         self.server = spec.make_server(spec.method, self.renderer, config)
@@ -214,27 +239,57 @@ class SessionPipeline:
         payload = self.server.encode(Pose(np.asarray(position, np.float64), np.asarray(quat, np.float64)), t)
         return encode_frame_payload(payload), payload.self_contained
 
+    def warm_up(self, frames: int = WARM_UP_FRAMES) -> None:
+        """Encode `frames` frames along :func:`warm_up_path` and drop them (see :class:`SessionHost`)."""
+        self.server.warm_up(warm_up_path(self.renderer.scene, frames))
+
     def close(self) -> None:
         self.server.close()
 
 
 class SessionHost:
     """The handler of a session's worker process: warmed up before any session claims it (modules imported,
-    headless GL context made, scene loaded: a few seconds on llvmpipe), then :meth:`build` makes the claiming
-    session's :class:`SessionPipeline` (fast), and :meth:`encode` runs it. The server keeps one such process
-    spare, so a new session waits for its pipeline, not for a process to boot."""
+    headless GL context made, scene loaded: a few seconds on llvmpipe; and, given `warm_up`, a few frames of each
+    method run and dropped, so that the shaders are compiled), then :meth:`build` makes the claiming session's
+    :class:`SessionPipeline` (fast), and :meth:`encode` runs it. The server keeps one such process spare, so a new
+    session waits for its pipeline, not for a process to boot or its shaders to compile."""
 
-    def __init__(self, scene: str) -> None:
+    def __init__(self, scene: str, warm_up: tuple[PipelineSpec, ...] = ()) -> None:
+        """`warm_up`: pipelines (small ones, :data:`WARM_UP_SIZE`) to build, run for a few frames
+        (:meth:`SessionPipeline.warm_up`) and drop before the worker is ready; their renderer is kept for the
+        session's pipeline, on the same context. On llvmpipe a session's first frames otherwise compile its shaders:
+        a 480x270 courtyard session's first two took 2.2 and 1.2 s where Mesa's shader cache was empty, 0.14 and 0.10 s
+        after a warm-up (docs/speed.md, stop 53), and it sends the same bytes. :attr:`warm_up_ms` says how long each
+        method's took. A warm-up that fails fails the worker's start, naming the method."""
         from quadcast.render.gl import gl_context
+        from quadcast.render.renderer import DeferredRenderer
         from quadcast.render.scene import load_scene
         gl_context()
         self.scene = load_scene(scene)
         self.pipeline: SessionPipeline | None = None
+        self.renderer = DeferredRenderer(self.scene) if warm_up else None
+        self.warm_up_ms: dict[str, float] = {}
+        for spec in warm_up:
+            t0 = time.perf_counter()
+            try:
+                pipeline = SessionPipeline(spec, renderer=self.renderer)
+                try:
+                    pipeline.warm_up()
+                finally:
+                    pipeline.close()
+            except Exception as exc:
+                raise RuntimeError(f"warm-up of {spec.method} at {spec.width}x{spec.height} failed: "
+                                   f"{type(exc).__name__}: {exc}") from exc
+            self.warm_up_ms[spec.method] = (time.perf_counter() - t0) * 1e3
+
+    def warm_up_times(self) -> dict[str, float]:
+        """How long each method's warm-up took (ms)."""
+        return dict(self.warm_up_ms)
 
     def build(self, spec: PipelineSpec) -> int:
         if self.pipeline is not None:
             raise RuntimeError("SessionHost.build: this worker already serves a session")
-        self.pipeline = SessionPipeline(spec, scene=self.scene)
+        self.pipeline = SessionPipeline(spec, scene=self.scene, renderer=self.renderer)
         return os.getpid()
 
     def encode(self, position, quat, t: float, reference: bool, point=None,
@@ -595,12 +650,21 @@ class LiveServer:
 
     def _spawn_spares(self, at_most: int | None = None) -> None:
         """Boot worker processes until ``spare_workers`` (or `at_most`, if fewer) are spare (a session claims one
-        instead of waiting for a process to boot: seconds on a loaded machine)."""
+        instead of waiting for a process to boot: seconds on a loaded machine). Those booted while no session runs
+        warm up (``config.warm_up``, :class:`SessionHost`); one booted beside running sessions does not, as that
+        would take more of the CPU their frames need."""
         if self.config.worker != "process" or self._closing:
             return
         wanted = self.config.spare_workers if at_most is None else min(at_most, self.config.spare_workers)
+        warm_up = self.warm_up_specs() if self.config.warm_up and self.active == 0 else ()
         while len(self._spares) < wanted:
-            self._spares.append(ProcessWorker(SessionHost, (self.config.scene,), "session-worker"))
+            self._spares.append(ProcessWorker(SessionHost, (self.config.scene, warm_up), "session-worker"))
+
+    def warm_up_specs(self) -> tuple[PipelineSpec, ...]:
+        """The pipelines a spare worker warms up with: every method served, at :data:`WARM_UP_SIZE`."""
+        cfg = self.config
+        return tuple(PipelineSpec(self.make_server, cfg.scene, method, *WARM_UP_SIZE, 60.0, cfg.viewcell_m,
+                                  cfg.reference_every, cfg.crf) for method in cfg.methods)
 
     @property
     def active(self) -> int:
@@ -648,12 +712,17 @@ class LiveServer:
     async def start(self) -> None:
         cfg = self.config
         self._spawn_spares()
-        if self._spares:                 # the first session should not wait for a process to boot
+        # the first session should not wait for a process to boot, nor share the CPU with spares still booting
+        for spare in list(self._spares):
             try:
-                await self._spares[0].start(cfg.worker_start_timeout)
+                await spare.start(cfg.worker_start_timeout)
+                warmed = await spare.call("warm_up_times")
             except (WorkerDied, WorkerError, asyncio.TimeoutError) as exc:
                 await self._close_spares()
                 raise RuntimeError(f"server: the session worker process could not start: {exc}") from None
+            if warmed:
+                log.info("session worker %d warmed up: %s", spare.pid,
+                         ", ".join(f"{method} {ms:.0f} ms" for method, ms in warmed.items()))
         if self.transport == "tcp":
             self._tcp = await asyncio.start_server(self._on_tcp, cfg.host, cfg.port, limit=1 << 16)
         else:

@@ -29,6 +29,13 @@ class MethodServer(ABC):
         (:meth:`quadcast.protocol.session.ServerSession.rotation_miss_deg`; None: unknown). Methods that send
         content beyond the view may size it by this; the others ignore it."""
 
+    def warm_up(self, frames: list[tuple[Pose, float]]) -> None:
+        """Encode `frames` ((pose, scene time) pairs) and drop them, so that the shader variants this method's frames
+        use are compiled before a session needs them (quadcast.server.app.SessionHost; llvmpipe compiles each on its
+        first draw or dispatch). The instance is thrown away after. The default encodes them."""
+        for pose, t in frames:
+            self.encode(pose, t)
+
     def request_reference(self) -> None:
         """The client lost its reference state: make the next frame self-contained (default: every frame is)."""
 

@@ -74,6 +74,12 @@ class QuadStreamServer(MethodServer):
     def request_reference(self) -> None:
         self._keyframe = True
 
+    def warm_up(self, frames: list[tuple[Pose, float]]) -> None:
+        # no layer of a warm-up's small frames reaches QuadMesh's run threshold: find runs in every layer, so that
+        # their passes are compiled too
+        self.mesh.min_run_quads = 0
+        super().warm_up(frames)
+
     def encode(self, pose: Pose, t: float) -> FramePayload:
         s, ctx = self.s, self.ctx
         ms = {"gbuffers": 0.0}

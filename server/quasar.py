@@ -208,6 +208,12 @@ class QuasarServer(MethodServer):
     def request_reference(self) -> None:
         self._force_reference = True
 
+    def warm_up(self, frames: list[tuple[Pose, float]]) -> None:
+        # no layer of a warm-up's small frames reaches QuadMesh's run threshold: find runs in every layer, so that
+        # their passes are compiled too
+        self.mesh.min_run_quads = 0
+        super().warm_up(frames)
+
     def apply_operating_point(self, point: OperatingPoint) -> bool:
         """Make the next frames at ``point`` (see :class:`quadcast.protocol.rate.OperatingPoint`). Every knob keeps
         the atlas size. Quad thresholds, view cell, hidden layers and reference interval take effect with the next

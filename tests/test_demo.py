@@ -63,6 +63,7 @@ def test_the_live_demo_runs_on_the_scene_and_trace_it_is_given(tmp_path, capsys)
     assert s["start_s"] == pytest.approx(view.resolved().start) and s["server_frames"] >= 1 and s["frames"] >= 1
     out = capsys.readouterr().out
     assert "scene builtin:courtyard-static" in out                     # the server's ready line
+    assert "warmed up: quasar" in (tmp_path / "demo" / "server.log").read_text()   # its spare workers warmed up
     assert f"on {trace} in builtin:courtyard-static at 160x90" in out
 
 

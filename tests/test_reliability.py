@@ -465,7 +465,7 @@ def test_a_frame_of_empty_layers_is_applied_and_rendered(ctx):
 def test_spare_workers_boot_beside_running_sessions_only_when_none_is_left(monkeypatch):
     """A session claims a booted spare worker process. While sessions run, the server boots a replacement only when
     it took the last spare (booting one takes seconds of the CPU the running sessions' frames need); the rest are
-    booted once no session runs."""
+    booted once no session runs. Only those booted while no session runs warm up (every method served)."""
     import quadcast.server.app as app
 
     booted = []
@@ -473,24 +473,31 @@ def test_spare_workers_boot_beside_running_sessions_only_when_none_is_left(monke
     class FakeProcess:
         alive = True
 
-        def __init__(self, *args, **kw):
+        def __init__(self, factory, args, name):
+            self.warm_up = [(spec.method, spec.width, spec.height) for spec in args[1]]
             booted.append(self)
 
         def close(self, timeout=None):
             pass
 
     monkeypatch.setattr(app, "ProcessWorker", FakeProcess)
-    server = LiveServer(ServerConfig(worker="process", spare_workers=2), make_server=None)
+    server = LiveServer(ServerConfig(worker="process", spare_workers=2, methods=("quasar", "atw")), make_server=None)
     server._spawn_spares()
     assert len(booted) == 2
+    assert all(p.warm_up == [("quasar", 200, 112), ("atw", 200, 112)] for p in booted)
     server.admission.sessions = 1
     assert server.claim_process() is booted[0]
     assert len(booted) == 2 and list(server._spares) == [booted[1]]     # one spare left: nothing boots
     server.admission.sessions = 2
     assert server.claim_process() is booted[1]
     assert len(booted) == 3 and list(server._spares) == [booted[2]]     # the last one taken: one boots
+    assert booted[2].warm_up == []                                      # beside running sessions: no warm-up
     server.session_ended(app.ServerCounters())
     assert len(booted) == 3                                             # a session still runs
     server.admission.sessions = 0
     server.session_ended(app.ServerCounters())
     assert len(booted) == 4 and len(server._spares) == 2                # none runs: back to two
+    assert booted[3].warm_up and not booted[2].warm_up
+    booted.clear()
+    LiveServer(ServerConfig(worker="process", spare_workers=1, warm_up=False), make_server=None)._spawn_spares()
+    assert [p.warm_up for p in booted] == [[]]

@@ -325,7 +325,7 @@ def cmd_demo(args) -> int:
     view = DemoView(scene=args.scene, trace=args.trace, anchor=args.anchor, start=args.start, duration=args.duration,
                     size=args.size)
     return run_demo(Path(args.out), quiet=args.quiet, view=view, compare=not args.no_compare, client_nice=nice,
-                    client_cores=cores)
+                    client_cores=cores, warm_up=not args.no_warm_up)
 
 
 # -------------------------------------------------------------------------------------------------- main
@@ -467,6 +467,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--client-cores", type=_client_cores, default=None, metavar="N",
                    help="run the client on the last N of the machine's cores, 0 for all of them (default 1: it "
                         "never takes every core from the server)")
+    p.add_argument("--no-warm-up", action="store_true",
+                   help="neither the server's spare workers nor the client run made-up frames first (so that "
+                        "llvmpipe compiles the shaders before the session's first frames need them)")
     p.set_defaults(func=cmd_demo)
 
     from quadcast.cli.live import add_live_commands

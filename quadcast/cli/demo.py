@@ -223,10 +223,11 @@ def client_cpus(cores: int) -> set[int] | None:
 
 
 def run_demo(out: Path, quiet: bool = False, view: DemoView = DemoView(), record_every: int = 3,
-             compare: bool = True, client_nice: int = CLIENT_NICE, client_cores: int = CLIENT_CORES) -> int:
+             compare: bool = True, client_nice: int = CLIENT_NICE, client_cores: int = CLIENT_CORES,
+             warm_up: bool = True) -> int:
     """Start server, link and client (the client `client_nice` below the others' priority, on `client_cores` of the
     machine's cores: `client_cpus`) on `view`'s scene and trace; print the client's figures and where the report
-    is. With `compare`, then replay the same trace at the same size over the same link model in virtual time
+    is. `warm_up` False passes ``--no-warm-up`` to server and client. With `compare`, then replay the same trace at the same size over the same link model in virtual time
     (:func:`virtual_twin`) and print both FLIPs: what the live system lost to this machine's speed; and once more
     with the server taking the live run's time per received frame: how much of that loss is the server's frame
     rate."""
@@ -242,8 +243,9 @@ def run_demo(out: Path, quiet: bool = False, view: DemoView = DemoView(), record
     previous = signal.signal(signal.SIGTERM, on_term)
     try:
         t0 = time.monotonic()
-        server = Child("server", quadcast_argv("server", "--scene", view.scene, "--port", 0, "-v"), out / "server.log",
-                       echo=not quiet)
+        no_warm_up = () if warm_up else ("--no-warm-up",)
+        server = Child("server", quadcast_argv("server", "--scene", view.scene, "--port", 0, *no_warm_up, "-v"),
+                       out / "server.log", echo=not quiet)
         children.append(server)
         port = int(server.wait_for(LISTENING, 120).group(2))
         link = Child("link", quadcast_argv("link", "--listen", 0, "--to", f"127.0.0.1:{port}", "--delay", "20ms",
@@ -255,7 +257,8 @@ def run_demo(out: Path, quiet: bool = False, view: DemoView = DemoView(), record
         client = Child("client", quadcast_argv("client", "--connect", f"127.0.0.1:{link_port}", *view.trace_args(),
                                                "--size", size, "--duration", str(duration),
                                                "--record-every", record_every,
-                                               "--label-latency", 20, "--label-jitter", 10, "--out", client_out),
+                                               "--label-latency", 20, "--label-jitter", 10, *no_warm_up,
+                                               "--out", client_out),
                        out / "client.log", echo=not quiet, nice=client_nice, cpus=cpus)
         children.append(client)
         code = client.wait(timeout=duration + 900)

@@ -71,7 +71,8 @@ def cmd_server(args) -> int:
                        reference_every=args.reference_every, crf=args.crf, lead_ms=args.lead_ms,
                        predict=not args.no_predict, max_sessions=args.max_sessions,
                        max_message_bytes=args.max_message_bytes, worker=args.worker,
-                       spare_workers=args.spare_workers, max_preauth=args.max_preauth, max_per_ip=args.max_per_ip,
+                       spare_workers=args.spare_workers, warm_up=not args.no_warm_up,
+                       max_preauth=args.max_preauth, max_per_ip=args.max_per_ip,
                        handshake_timeout=args.handshake_timeout, idle_timeout=args.idle_timeout,
                        retry_after=args.retry_after, tls_cert=args.tls_cert, tls_key=args.tls_key,
                        allow_plaintext_token=args.allow_plaintext_token,
@@ -130,7 +131,8 @@ def cmd_client(args) -> int:
                        anchor=args.anchor,
                        record_every=args.record_every, token=args.token or "", transport=args.transport,
                        retries=args.retries, score=not args.no_score, stereo=args.stereo, labels=labels,
-                       tls=args.tls, tls_ca=args.tls_ca, insecure=args.insecure, stun=args.stun)
+                       tls=args.tls, tls_ca=args.tls_ca, insecure=args.insecure, stun=args.stun,
+                       warm_up=not args.no_warm_up)
     client = LiveClient(cfg, make_client)
     result: dict = {}
 
@@ -259,6 +261,9 @@ def add_live_commands(sub) -> None:
     p.add_argument("--spare-workers", type=int, default=2,
                    help="worker processes kept booted for the next sessions (--worker process): all of them "
                         "while no session runs, one while sessions do")
+    p.add_argument("--no-warm-up", action="store_true",
+                   help="spare workers skip their warm-up (a few small frames of each method, so that llvmpipe "
+                        "compiles the shaders before a session's first frames need them)")
     p.add_argument("-v", "--verbose", action="store_true", help="log sessions to stderr")
     p.set_defaults(func=cmd_server)
 
@@ -273,6 +278,9 @@ def add_live_commands(sub) -> None:
     p.add_argument("--start", type=float, default=0.0, help="trace time to start at, seconds")
     add_trace_placement(p, start=False)
     p.add_argument("--record-every", type=int, default=1, help="record (and score) every K-th displayed frame")
+    p.add_argument("--no-warm-up", action="store_true",
+                   help="connect without first receiving and drawing made-up frames (so that llvmpipe compiles "
+                        "the shaders before the first real frame needs them)")
     p.add_argument("--transport", default="tcp", choices=["tcp", "webrtc"])
     p.add_argument("--token", help="shared secret for the server")
     p.add_argument("--tls", action="store_true", help="connect with TLS, verifying the server against the system CAs")

@@ -1,0 +1,143 @@
+"""A spare session worker warms up before any session claims it (issue 14, live): it runs a few small frames of every
+method served and drops them, so that llvmpipe has compiled the shaders a session's first frames use."""
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+
+from quadcast.methods import make_server
+from quadcast.protocol.frame import decode_frame_payload
+from quadcast.render import quadmesh
+from quadcast.render.camera import Pose
+from quadcast.render.worker import ProcessWorker
+from quadcast.render.gl import WARM_UP_SIZE
+from quadcast.server.app import PipelineSpec, SessionHost, warm_up_path
+from quadcast.server.quadstream import QuadStreamServer, QuadStreamSettings
+from quadcast.server.quasar import QuasarServer, QuasarSettings
+
+
+def test_warm_up_path_walks_forward_from_the_spawn_point_turning_left(courtyard):
+    spawn = courtyard.spawn
+    path = warm_up_path(courtyard, frames=3, dt=0.1)
+    assert [t for _, t in path] == [0.0, 0.1, 0.2]
+    np.testing.assert_allclose(path[0][0].position, spawn.position)
+    yaw = math.radians(spawn.yaw_deg)
+    forward = np.array([-math.sin(yaw), 0.0, -math.cos(yaw)])     # yaw 0 looks down -Z, positive turns left
+    steps = [float(np.dot(b.position - a.position, forward)) for (a, _), (b, _) in zip(path, path[1:])]
+    assert all(s > 0.1 for s in steps)
+    angles = [a.angle_to_deg(b) for (a, _), (b, _) in zip(path, path[1:])]
+    np.testing.assert_allclose(angles, 4.0, atol=1e-6)
+
+
+def test_warm_ups_of_the_mesh_methods_find_runs_in_their_small_layers(courtyard_renderer, monkeypatch):
+    """At the warm-up's size no layer reaches QuadMesh's run threshold, so without lowering it the warm-up would
+    leave the runs' five passes for a session's first frames to compile."""
+    merged = []
+    original = quadmesh.QuadMesh._merge_runs
+    monkeypatch.setattr(quadmesh.QuadMesh, "_merge_runs",
+                        lambda self, layer, buf, edit=None: (merged.append(len(layer.quads)),
+                                                             original(self, layer, buf, edit))[1])
+    w, h = WARM_UP_SIZE
+    path = warm_up_path(courtyard_renderer.scene)
+    for server in (QuasarServer(courtyard_renderer, QuasarSettings(width=w, height=h)),
+                   QuadStreamServer(courtyard_renderer, QuadStreamSettings(width=w, height=h))):
+        merged.clear()
+        try:
+            server.warm_up(path)
+        finally:
+            server.close()
+        assert merged and max(merged) < quadmesh.MIN_RUN_QUADS, type(server).__name__
+
+
+def test_a_spare_worker_warms_up_every_method_served_then_serves_a_session():
+    """The real worker process: booted with warm-up pipelines, it reports their times, then builds a session's
+    pipeline of another size and encodes its frames."""
+    def spec(method, w, h):
+        return PipelineSpec(make_server, "builtin:courtyard", method, w, h, 60.0, 0.5, 5, None)
+
+    async def run():
+        warm = (spec("quasar", *WARM_UP_SIZE), spec("atw", *WARM_UP_SIZE))
+        worker = ProcessWorker(SessionHost, ("builtin:courtyard", warm), "warm-up-test")
+        try:
+            await worker.start(120.0)
+            times = await worker.call("warm_up_times")
+            await worker.call("build", spec("quasar", 96, 54))
+            frames = []
+            for pose, t in warm_up_path_poses():
+                data, _ = await worker.call("encode", pose.position, pose.quat, t, False)
+                frames.append(decode_frame_payload(data))
+            return times, frames
+        finally:
+            worker.close()
+
+    def warm_up_path_poses():
+        from quadcast.render.scene import load_scene
+        return warm_up_path(load_scene("builtin:courtyard"), frames=2)
+
+    times, frames = asyncio.run(run())
+    assert set(times) == {"quasar", "atw"} and all(ms > 0 for ms in times.values())
+    assert [f.frame_id for f in frames] == [0, 1]       # the session's own numbering: the warm-up left nothing
+    assert frames[0].self_contained
+
+
+def test_a_client_warm_up_runs_its_draws_and_edits_then_leaves_the_client_as_it_was(ctx, courtyard_renderer,
+                                                                                     monkeypatch):
+    """QuasarClient.warm_up receives and draws made-up frames on a throwaway client on the same context: the cache's
+    edit (quads freed), the runs in its small layers and the current view's colour all run; the client itself is
+    still waiting for its first frame, and then takes a real one."""
+    from quadcast.client.quasar import QuasarClient
+    calls = {"runs": 0, "freed": 0, "current": 0}
+    merge, edit, current = (quadmesh.QuadMesh._merge_runs, quadmesh.QuadMesh._edit,
+                            quadmesh.QuadMesh.set_current_view)
+
+    def spy_merge(self, layer, buf, e=None):
+        calls["runs"] += 1
+        return merge(self, layer, buf, e)
+
+    def spy_edit(self, layer, buf, atlas_size):
+        calls["freed"] += layer.edit.kept is not None and not layer.edit.kept.all()
+        return edit(self, layer, buf, atlas_size)
+
+    def spy_current(self, camera, atlas_rect=None):
+        calls["current"] += camera is not None
+        return current(self, camera, atlas_rect)
+
+    monkeypatch.setattr(quadmesh.QuadMesh, "_merge_runs", spy_merge)
+    monkeypatch.setattr(quadmesh.QuadMesh, "_edit", spy_edit)
+    monkeypatch.setattr(quadmesh.QuadMesh, "set_current_view", spy_current)
+    client = QuasarClient(96, 54, ctx=ctx)
+    try:
+        client.warm_up()
+        assert calls["runs"] >= 2 and calls["freed"] >= 1 and calls["current"] >= 1, calls
+        assert client.atlas is None and client.needs_reference and client.last_frame_id == -1
+        assert not client.render(Pose(np.zeros(3))).any()                       # black before a payload
+        server = QuasarServer(courtyard_renderer, QuasarSettings(width=96, height=54))
+        try:
+            pose, t = warm_up_path(courtyard_renderer.scene, frames=1)[0]
+            client.receive(server.encode(pose, t))
+        finally:
+            server.close()
+        assert client.last_frame_id == 0 and client.render(pose).any()
+    finally:
+        client.close()
+
+
+def test_a_warmed_up_worker_sends_what_a_cold_one_sends(ctx):
+    """The warm-up's renderer is kept for the session's pipeline (same context, so the compiled shaders are there):
+    what the session sends is byte for byte what a worker without a warm-up sends."""
+    def spec(w, h):
+        return PipelineSpec(make_server, "builtin:courtyard", "quasar", w, h, 60.0, 0.5, 5, None)
+
+    sent = []
+    for warm_up in ((), (spec(*WARM_UP_SIZE),)):
+        host = SessionHost("builtin:courtyard", warm_up)
+        try:
+            assert (host.renderer is None) == (not warm_up)
+            host.build(spec(96, 54))
+            sent.append([host.encode(pose.position, pose.quat, t, False)[0]
+                         for pose, t in warm_up_path(host.scene, frames=4, dt=0.2)])
+        finally:
+            host.close()
+    assert sent[0] == sent[1]
