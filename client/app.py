@@ -377,10 +377,13 @@ class LiveClient:
                                                                   fovy_deg=cfg.fovy_deg), self.worker.ctx)
         if cfg.stereo and not hasattr(self.method_client, "stereo_frame"):
             raise ValueError(f"--stereo: the {cfg.method} client cannot synthesize an eye")
-        if cfg.warm_up:
+        if cfg.warm_up:                        # before connecting: the first frame should not wait for compiling
             t0 = time.perf_counter()
-            self.method_client.warm_up()       # before connecting: the first frame should not wait for compiling
-            log.info("warmed up in %.0f ms", (time.perf_counter() - t0) * 1e3)
+            try:
+                self.method_client.warm_up()
+                log.info("warmed up in %.0f ms", (time.perf_counter() - t0) * 1e3)
+            except Exception as exc:  # noqa: BLE001 -- only a head start is lost (its made-up frames need x264)
+                log.warning("warm-up failed, going on without it: %s: %s", type(exc).__name__, exc)
 
     def _apply(self, payload: FramePayload) -> tuple[bool, bool, str]:
         """On the GL thread: apply one frame; (applied, the method client needs a reference, why not applied)."""

@@ -1,5 +1,6 @@
-"""A spare session worker warms up before any session claims it (issue 14, live): it runs a few small frames of every
-method served and drops them, so that llvmpipe has compiled the shaders a session's first frames use."""
+"""Warm-ups (issue 14, live): a spare session worker runs a few small frames of every method served before any
+session claims it, and the live client receives and draws made-up frames before it connects, so that llvmpipe has
+compiled the shaders before a real frame needs them."""
 from __future__ import annotations
 
 import asyncio
@@ -11,8 +12,9 @@ from quadcast.methods import make_server
 from quadcast.protocol.frame import decode_frame_payload
 from quadcast.render import quadmesh
 from quadcast.render.camera import Pose
-from quadcast.render.worker import ProcessWorker
+from quadcast.render.scene import load_scene
 from quadcast.render.gl import WARM_UP_SIZE
+from quadcast.render.worker import ProcessWorker
 from quadcast.server.app import PipelineSpec, SessionHost, warm_up_path
 from quadcast.server.quadstream import QuadStreamServer, QuadStreamSettings
 from quadcast.server.quasar import QuasarServer, QuasarSettings
@@ -65,16 +67,12 @@ def test_a_spare_worker_warms_up_every_method_served_then_serves_a_session():
             times = await worker.call("warm_up_times")
             await worker.call("build", spec("quasar", 96, 54))
             frames = []
-            for pose, t in warm_up_path_poses():
+            for pose, t in warm_up_path(load_scene("builtin:courtyard"), frames=2):
                 data, _ = await worker.call("encode", pose.position, pose.quat, t, False)
                 frames.append(decode_frame_payload(data))
             return times, frames
         finally:
             worker.close()
-
-    def warm_up_path_poses():
-        from quadcast.render.scene import load_scene
-        return warm_up_path(load_scene("builtin:courtyard"), frames=2)
 
     times, frames = asyncio.run(run())
     assert set(times) == {"quasar", "atw"} and all(ms > 0 for ms in times.values())
@@ -141,3 +139,39 @@ def test_a_warmed_up_worker_sends_what_a_cold_one_sends(ctx):
         finally:
             host.close()
     assert sent[0] == sent[1]
+
+
+def test_a_live_client_whose_warm_up_fails_goes_on_without_it(tmp_path, caplog):
+    """The client's warm-up is only a head start (and its made-up frames need x264, which a client otherwise does
+    not): if it fails, the client logs why and connects all the same; without --no-warm-up it is run."""
+    import types
+
+    from quadcast.client.app import ClientConfig, LiveClient
+    from quadcast.client.method import MethodClient
+
+    warmed = []
+
+    class Failing(MethodClient):
+        name = "quasar"
+
+        def receive(self, payload):
+            pass
+
+        def render(self, pose):
+            return np.zeros((2, 2, 3), np.uint8)
+
+        def coverage(self):
+            raise NotImplementedError
+
+        def warm_up(self):
+            warmed.append(True)
+            raise RuntimeError("no encoder here")
+
+    for warm_up in (True, False):
+        client = LiveClient(ClientConfig(host="127.0.0.1", port=1, out=str(tmp_path), warm_up=warm_up),
+                            lambda method, config, ctx: Failing())
+        client.worker = types.SimpleNamespace(ctx=None)
+        with caplog.at_level("WARNING", logger="quadcast.client"):
+            client._setup()
+    assert warmed == [True]
+    assert "warm-up failed, going on without it: RuntimeError: no encoder here" in caplog.text

@@ -227,10 +227,10 @@ def run_demo(out: Path, quiet: bool = False, view: DemoView = DemoView(), record
              warm_up: bool = True) -> int:
     """Start server, link and client (the client `client_nice` below the others' priority, on `client_cores` of the
     machine's cores: `client_cpus`) on `view`'s scene and trace; print the client's figures and where the report
-    is. `warm_up` False passes ``--no-warm-up`` to server and client. With `compare`, then replay the same trace at the same size over the same link model in virtual time
+    is. With `compare`, then replay the same trace at the same size over the same link model in virtual time
     (:func:`virtual_twin`) and print both FLIPs: what the live system lost to this machine's speed; and once more
     with the server taking the live run's time per received frame: how much of that loss is the server's frame
-    rate."""
+    rate. `warm_up` False passes ``--no-warm-up`` to server and client."""
     view = view.resolved()
     size, duration = view.size, view.duration
     out = Path(out)
