@@ -37,7 +37,7 @@ def warm_up_frames(method: Method, width: int, height: int) -> list[tuple[FrameP
     wall 5 m in front of the camera as 2-pixel quads, every seventh with depth offsets) and a residual frame that
     updates the middle of the cached wall (freeing the quads it covers) and reveals a strip. Their atlas is coded
     by x264 like a server's."""
-    camera = Camera(Pose(np.zeros(3)), Frustum.symmetric(60.0, width / height), width, height)
+    camera = Camera.perspective(Pose(np.zeros(3)), width, height)
 
     def wall(x0, x1, y0, y1, size_log2=1, depth=5.0):
         s = 1 << size_log2
