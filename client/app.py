@@ -380,7 +380,7 @@ class LiveClient:
         if cfg.warm_up:                        # before connecting: the first frame should not wait for compiling
             t0 = time.perf_counter()
             try:
-                self.method_client.warm_up()
+                self.method_client.warm_up(stereo=cfg.stereo)
                 log.info("warmed up in %.0f ms", (time.perf_counter() - t0) * 1e3)
             except Exception as exc:  # noqa: BLE001 -- only a head start is lost (its made-up frames need x264)
                 log.warning("warm-up failed, going on without it: %s: %s", type(exc).__name__, exc)

@@ -28,14 +28,15 @@ import numpy as np
 
 from quadcast.client.method import Coverage, MethodClient, PixelCoverage
 from quadcast.codec.decoder import AtlasDecoder
+from quadcast.codec.encoder import AtlasEncoder
 from quadcast.codec.picture import YuvPicture
-from quadcast.protocol.depth import DEFAULT_MAX_DEPTH_PIXELS, decode_depth
+from quadcast.protocol.depth import DEFAULT_MAX_DEPTH_PIXELS, decode_depth, encode_depth
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.frame import FramePayload, Method
+from quadcast.protocol.frame import FrameType, FramePayload, Method
 from quadcast.protocol.methods import MAX_ATLAS_VIEWS, meshwarp_render_size
 from quadcast.render.atlas_texture import AtlasTexture
 from quadcast.render.camera import Camera, Frustum, Pose, gl_matrix
-from quadcast.render.gl import RENDER_DIR, gl_context, program, set_uniforms
+from quadcast.render.gl import RENDER_DIR, WARM_UP_SIZE, gl_context, program, set_uniforms
 from quadcast.render.renderer import read_texture
 
 __all__ = ["ATWClient", "MeshWarpClient", "rotation_homography"]
@@ -144,6 +145,31 @@ class _BaselineClient(MethodClient):
     def _draw(self, pose: Pose) -> None:
         raise NotImplementedError
 
+    def _frame_size(self) -> tuple[int, int]:
+        """The size of the frames this client's server sends."""
+        return self.width, self.height
+
+    def _geometry(self, width: int, height: int) -> bytes:
+        """The geometry blob of a made-up frame (`warm_up`): none."""
+        return b""
+
+    def warm_up(self, stereo: bool = False) -> None:
+        """Receive and draw one made-up frame (x264-coded grey, and MeshWarp's depth: a slanted wall with sky above
+        it) on a throwaway client of this kind at :data:`WARM_UP_SIZE` on this client's context, then drop it, so
+        that llvmpipe has compiled the shaders before the first real frame (docs/speed.md, stop 54). This client
+        is untouched; it has no stereo of its own."""
+        probe = type(self)(*WARM_UP_SIZE, self.fovy, self.server_fovy, ctx=self.ctx)
+        try:
+            w, h = probe._frame_size()
+            with AtlasEncoder(w, h) as encoder:
+                video = encoder.encode(np.full((h, w, 3), 128, np.uint8), keyframe=True).data
+            pose = Pose(np.zeros(3))
+            probe.receive(FramePayload(self.method, 0, FrameType.REFERENCE, 0, 0.0, pose.position, pose.quat, video,
+                                       probe._geometry(w, h), self_contained=True))
+            probe.render(pose.offset_local([0.05, 0.0, 0.0]))
+        finally:
+            probe.close()
+
     def render(self, pose: Pose) -> np.ndarray:
         """The displayed image (height, width, 3) uint8, top row first, for the current `pose`."""
         if self.frame is None:
@@ -231,6 +257,20 @@ class MeshWarpClient(_BaselineClient):
         self._commit_color(payload, pose, picture)
         self._depth_tex = self._upload_texture(self._depth_tex, np.where(np.isfinite(depth), depth, 0.0)
                                                .astype(np.float32), 1, "f4", moderngl.NEAREST)
+
+    def _frame_size(self) -> tuple[int, int]:
+        return self.depth_size
+
+    def warm_up(self, stereo: bool = False) -> None:
+        """The shared warm-up, then this client's grid mesh for the frames its server sends (a static index
+        buffer, which the first frame would otherwise build)."""
+        super().warm_up(stereo)
+        self._grid_vao(*self.depth_size)
+
+    def _geometry(self, width: int, height: int) -> bytes:
+        depth = np.broadcast_to(np.linspace(3.0, 6.0, width, dtype=np.float32), (height, width)).copy()
+        depth[: height // 4] = np.inf
+        return encode_depth(depth)
 
     def _grid_vao(self, w: int, h: int) -> moderngl.VertexArray:
         """A static index buffer of (w-1)(h-1) quads, two triangles each, over vertex ids row * w + column."""

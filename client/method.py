@@ -128,10 +128,11 @@ class MethodClient(ABC):
         """True when the client cannot use residual frames until a reference frame arrives."""
         return False
 
-    def warm_up(self) -> None:
+    def warm_up(self, stereo: bool = False) -> None:
         """Before the first payload: run the method's receive and draw once on something made up and drop it, so
         that llvmpipe compiles the shaders before a real frame waits for them (the live client calls it before it
-        connects). The state a payload would set is left as it was. The default does nothing."""
+        connects); `stereo`: also what its stereo frames run. The state a payload would set is left as it was.
+        The default does nothing."""
 
     def close(self) -> None:
         pass

@@ -211,12 +211,13 @@ class QuasarClient(MethodClient):
             if x + w > atlas_w or y + h > atlas_h:
                 raise ProtocolError(f"layer {i}: atlas rect {layer.atlas_rect} outside the {atlas_w}x{atlas_h} video")
 
-    def warm_up(self) -> None:
+    def warm_up(self, stereo: bool = False) -> None:
         """Receive and draw :func:`warm_up_frames` on a client of :data:`WARM_UP_SIZE` on this client's context, whose
         mesh finds runs in every layer (none of those small layers would reach QuadMesh's threshold), then drop it:
         on llvmpipe this client's first frame then does not wait for its shaders to compile (docs/speed.md, stop
-        53). This client's own state is untouched; the throwaway client's GL objects (under 2 MB) stay on the
-        context."""
+        53). `stereo`: also make this client's MeshStereo (default eyes), whose YORO shaders are compiled for this
+        client's width and run once there (stop 54). This client's frame state is untouched; the throwaway
+        client's GL objects (under 2 MB) stay on the context."""
         probe = QuasarClient(*WARM_UP_SIZE, ctx=self.ctx, method=self.method)
         probe.mesh.min_run_quads = 0
         try:
@@ -226,6 +227,8 @@ class QuasarClient(MethodClient):
                 probe.coverage()
         finally:
             probe.close()
+        if stereo:
+            self._mesh_stereo()
 
     def close(self) -> None:
         """Stop the decoding thread (the GL objects go with the context)."""
@@ -259,11 +262,7 @@ class QuasarClient(MethodClient):
         also renders the other eye normally, for its image and the cost ratio. Before any payload, both eyes
         are black. The stage times are also in `stats["stereo_ms"]`."""
         self.coverage()    # the last `render`'s, read before the dominant eye is drawn into the same view
-        stereo = self._stereo
-        if stereo is None or stereo.synth.dominant != dominant or stereo.synth.ipd != float(ipd):
-            if stereo is not None:
-                stereo.release()
-            stereo = self._stereo = MeshStereo(self.ctx, self.width, self.height, ipd, dominant)
+        stereo = self._mesh_stereo(dominant, ipd)
         head = Camera(pose, self.frustum, self.width, self.height)
         if self.atlas is None:
             if mode not in STEREO_MODES:
@@ -274,6 +273,16 @@ class QuasarClient(MethodClient):
         frame = stereo.frame(self.mesh, self.view, self.atlas, head, mode, with_rendered)
         self.stats["stereo_ms"] = dict(frame.ms)
         return frame
+
+    def _mesh_stereo(self, dominant: str = "left", ipd: float = DEFAULT_IPD_M) -> MeshStereo:
+        """The MeshStereo for `dominant` and `ipd`, made (and its shaders run once) on first use or when they
+        change."""
+        stereo = self._stereo
+        if stereo is None or stereo.synth.dominant != dominant or stereo.synth.ipd != float(ipd):
+            if stereo is not None:
+                stereo.release()
+            stereo = self._stereo = MeshStereo(self.ctx, self.width, self.height, ipd, dominant)
+        return stereo
 
     def render_stereo(self, pose: Pose, mode: str = "yoro") -> tuple[np.ndarray, np.ndarray]:
         """(left, right) eye images at head `pose`: the left eye rendered, the right one made by `mode` (see

@@ -510,9 +510,11 @@ class MeshStereo:
         self.ctx = ctx
         self.synth = StereoSynthesizer(ctx, width, height, ipd, dominant=dominant, **synth_options)
         self.other_view = MeshView(ctx, width, height)
-        # Warm-up: drivers compile shaders on first use; keep that out of the first frame's timings.
+        # Warm-up: drivers compile shaders on first use; keep that out of the first frame's timings. Both row
+        # passes: with the edge reject (mode "rerender") and without it (mode "yoro").
         probe = Camera.perspective(Pose([0.0, 0.0, 0.0]), width, height)
-        self.synth.synthesize(self.other_view.color, self.other_view.view_depth, probe)
+        for edge_mask in (True, False):
+            self.synth.synthesize(self.other_view.color, self.other_view.view_depth, probe, edge_mask=edge_mask)
         ctx.finish()
 
     def eye_cameras(self, head: Camera) -> tuple[Camera, Camera]:

@@ -122,6 +122,66 @@ def test_a_client_warm_up_runs_its_draws_and_edits_then_leaves_the_client_as_it_
         client.close()
 
 
+def test_a_stereo_client_warm_up_runs_both_yoro_row_passes_at_its_own_size(ctx, monkeypatch):
+    """With `stereo`, the warm-up also makes the client's MeshStereo (YORO's row pass is compiled for the display
+    width) and runs its synthesis with and without the edge reject; the first stereo frame uses that one."""
+    from quadcast.client.quasar import QuasarClient
+    from quadcast.client.stereo import StereoSynthesizer
+    ran = []
+    synthesize = StereoSynthesizer.synthesize
+
+    def spy(self, color, depth, camera, edge_mask=True):
+        ran.append((self.width, self.height, edge_mask))
+        return synthesize(self, color, depth, camera, edge_mask)
+
+    monkeypatch.setattr(StereoSynthesizer, "synthesize", spy)
+    plain, stereo = QuasarClient(96, 54, ctx=ctx), QuasarClient(96, 54, ctx=ctx)
+    try:
+        plain.warm_up()
+        assert plain._stereo is None and ran == []
+        stereo.warm_up(stereo=True)
+        assert sorted(ran) == [(96, 54, False), (96, 54, True)]
+        made = stereo._stereo
+        frame = stereo.stereo_frame(Pose(np.zeros(3)), "yoro")
+        assert stereo._stereo is made and not frame.left.any()               # the same one; black before a payload
+    finally:
+        plain.close()
+        stereo.close()
+
+
+def test_baseline_client_warm_ups_draw_a_made_up_frame_and_leave_the_client_as_it_was(ctx, courtyard_renderer,
+                                                                                    monkeypatch):
+    """ATW and MeshWarp (60 and 120 degrees) clients receive and draw one made-up frame on a throwaway client of their
+    kind at WARM_UP_SIZE (MeshWarp's with its depth, drawn as its mesh); the client itself still waits for its first
+    frame, then takes a real one."""
+    from quadcast.client.baselines import ATWClient, MeshWarpClient
+    from quadcast.methods import make_client
+    from quadcast.protocol.methods import MethodConfig
+    drawn = []
+    for cls in (ATWClient, MeshWarpClient):
+        def spy(self, pose, draw=cls._draw):
+            drawn.append((self.name, self.width, self.height, getattr(self, "_depth_tex", None) is not None))
+            return draw(self, pose)
+        monkeypatch.setattr(cls, "_draw", spy)
+    pose, t = warm_up_path(courtyard_renderer.scene, frames=1)[0]
+    config = MethodConfig(width=96, height=54)
+    for name in ("atw", "meshwarp", "meshwarp120"):
+        drawn.clear()
+        client = make_client(name, config, ctx)
+        try:
+            client.warm_up()
+            assert drawn == [(client.name, *WARM_UP_SIZE, name != "atw")]
+            assert client.frame is None and client.needs_reference and not client.render(pose).any()
+            server = make_server(name, courtyard_renderer, config)
+            try:
+                client.receive(server.encode(pose, t))
+            finally:
+                server.close()
+            assert client.render(pose).any()
+        finally:
+            client.close()
+
+
 def test_a_warmed_up_worker_sends_what_a_cold_one_sends(ctx):
     """The warm-up's renderer is kept for the session's pipeline (same context, so the compiled shaders are there):
     what the session sends is byte for byte what a worker without a warm-up sends."""
@@ -163,8 +223,8 @@ def test_a_live_client_whose_warm_up_fails_goes_on_without_it(tmp_path, caplog):
         def coverage(self):
             raise NotImplementedError
 
-        def warm_up(self):
-            warmed.append(True)
+        def warm_up(self, stereo=False):
+            warmed.append(stereo)
             raise RuntimeError("no encoder here")
 
     for warm_up in (True, False):
@@ -173,5 +233,5 @@ def test_a_live_client_whose_warm_up_fails_goes_on_without_it(tmp_path, caplog):
         client.worker = types.SimpleNamespace(ctx=None)
         with caplog.at_level("WARNING", logger="quadcast.client"):
             client._setup()
-    assert warmed == [True]
+    assert warmed == [False]                                             # not a --stereo client
     assert "warm-up failed, going on without it: RuntimeError: no encoder here" in caplog.text
