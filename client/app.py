@@ -13,7 +13,8 @@ ground truth for those frames and writes the same ``summary.json`` / ``frames.cs
 synthesized with YORO (mode ``"yoro"``). Recorded frames keep both eyes (``frames/left_*.png``,
 ``frames/right_*.png``), the right eye's pose and the frame's cost ratio (the right eye also rendered from the
 mesh, as ``quadcast eval --stereo`` does), and the summary gets ``stereo`` = {ssim, psnr, flip, cost_ratio} of the
-synthesized right eye against the ground-truth right eye, scored with the same code as ``quadcast eval --stereo``. The head-pose image is still recorded and scored for the main figures.
+synthesized right eye against the ground-truth right eye, scored with the same code as ``quadcast eval --stereo``. The head-pose image is still recorded and scored for the main figures; it is drawn
+only for recorded frames, as the eyes are what a stereo client shows.
 
 The GL work runs on a :class:`quadcast.render.worker.GLWorker` *thread*: moderngl holds the GIL during GL calls, so the
 client's event loop (pose sending, frame receiving) can stall while a frame renders. The client's pose I/O matters
@@ -395,13 +396,16 @@ class LiveClient:
 
     def _render(self, pose: Pose, record: bool = False):
         """On the GL thread: the newest state at ``pose`` (and, with stereo, both eyes; ``record``: also the right
-        eye rendered, for the cost ratio)."""
-        t0 = time.perf_counter()
-        image = self.method_client.render(pose)
-        holes = self.method_client.coverage().figures() if record else {}   # only recorded frames report them
-        stats = getattr(self.method_client, "stats", {}) or {}
-        ms = dict(stats.get("ms", {}))
-        ms.setdefault("render", (time.perf_counter() - t0) * 1e3)
+        eye rendered, for the cost ratio). With stereo the eyes are what is shown, so the head-pose image, which
+        is recorded and scored, is drawn only on recorded frames (None on the others)."""
+        image, holes, ms = None, {}, {}
+        if record or not self.cfg.stereo:
+            t0 = time.perf_counter()
+            image = self.method_client.render(pose)
+            holes = self.method_client.coverage().figures() if record else {}   # only recorded frames report them
+            stats = getattr(self.method_client, "stats", {}) or {}
+            ms = dict(stats.get("ms", {}))
+            ms.setdefault("render", (time.perf_counter() - t0) * 1e3)
         stereo = None
         if self.cfg.stereo:
             frame = self.method_client.stereo_frame(pose, mode="yoro", with_rendered=record)

@@ -314,6 +314,47 @@ def test_stereo_client_records_both_eyes_and_scores_the_synthesized_one(server, 
     assert any("stereo (synthesized right eye)" in line for line in client.lines)
 
 
+def test_a_stereo_client_draws_the_head_pose_image_only_for_recorded_frames(tmp_path):
+    """With --stereo the eyes are what is shown: the head-pose image (recorded and scored) is drawn only on recorded
+    frames; without it, on every frame."""
+    import types
+
+    from quadcast.client.app import ClientConfig, LiveClient
+    from quadcast.render.camera import Pose
+    calls = []
+
+    class Counting:
+        stats: dict = {}
+
+        def render(self, pose):
+            calls.append("render")
+            return np.zeros((2, 2, 3), np.uint8)
+
+        def coverage(self):
+            return types.SimpleNamespace(figures=lambda: {"holes": 0.0})
+
+        def stereo_frame(self, pose, mode, with_rendered):
+            calls.append(f"stereo {with_rendered}")
+            eye = np.zeros((2, 2, 3), np.uint8)
+            return types.SimpleNamespace(left=eye, right=eye, other_camera=types.SimpleNamespace(pose=pose), ms={},
+                                         cost_ratio=None)
+
+    pose = Pose(np.zeros(3))
+    for stereo in (True, False):
+        client = LiveClient(ClientConfig(host="127.0.0.1", port=1, out=str(tmp_path), stereo=stereo),
+                            lambda method, config, ctx: Counting())
+        client.method_client = Counting()
+        calls.clear()
+        shown = client._render(pose, record=False)
+        recorded = client._render(pose, record=True)
+        if stereo:
+            assert calls == ["stereo False", "render", "stereo True"]
+            assert shown[0] is None and shown[2] is not None and recorded[0] is not None
+            assert recorded[3] == {"holes": 0.0}
+        else:
+            assert calls == ["render", "render"] and shown[2] is None and shown[0] is not None
+
+
 def test_stereo_with_a_baseline_method_fails_at_start_up(tmp_path):
     log = tmp_path / "c.log"
     child = Child("client", quadcast_argv("client", "--connect", "127.0.0.1:9", "--method", "atw", "--stereo",
