@@ -6,7 +6,6 @@ the figures are those of a slow software-GL machine: the checks are about correc
 """
 from __future__ import annotations
 
-import asyncio
 import json
 import re
 import socket

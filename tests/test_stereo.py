@@ -4,15 +4,14 @@ The synthetic scene is fronto-parallel: a textured wall at z = -4 and a red box 
 seen by a left eye at the origin looking down -Z. The eyes are 0.3 m apart so disparities are several pixels:
 f * ipd / z = 5.85 px on the wall and 13.75 px on the box face at 160x90, 60 degrees vertical field of view.
 """
-import moderngl
 import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from quadcast.client.stereo import StereoSynthesizer, benchmark_stereo, deferred_draw_fn
 from quadcast.render.camera import Camera, Pose
-from quadcast.render.renderer import DeferredRenderer, read_texture
-from quadcast.render.scene import DirectionalLight, Material, Mesh, Scene, SceneObject, compose_transform
+from quadcast.render.renderer import DeferredRenderer
+from quadcast.render.scene import DirectionalLight, Material, Mesh, Scene, SceneObject
 
 W, H = 160, 90
 IPD = 0.3
