@@ -13,8 +13,9 @@ ground truth for those frames and writes the same ``summary.json`` / ``frames.cs
 synthesized with YORO (mode ``"yoro"``). Recorded frames keep both eyes (``frames/left_*.png``,
 ``frames/right_*.png``), the right eye's pose and the frame's cost ratio (the right eye also rendered from the
 mesh, as ``quadcast eval --stereo`` does), and the summary gets ``stereo`` = {ssim, psnr, flip, cost_ratio} of the
-synthesized right eye against the ground-truth right eye, scored with the same code as ``quadcast eval --stereo``. The head-pose image is still recorded and scored for the main figures; it is drawn
-only for recorded frames, as the eyes are what a stereo client shows.
+synthesized right eye against the ground-truth right eye, scored with the same code as ``quadcast eval --stereo``.
+The head-pose image is still recorded and scored for the main figures; it is drawn only for recorded frames, as the
+eyes are what a stereo client shows.
 
 The GL work runs on a :class:`quadcast.render.worker.GLWorker` *thread*: moderngl holds the GIL during GL calls, so the
 client's event loop (pose sending, frame receiving) can stall while a frame renders. The client's pose I/O matters
