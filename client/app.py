@@ -409,7 +409,8 @@ class LiveClient:
             ms.setdefault("render", (time.perf_counter() - t0) * 1e3)
         stereo = None
         if self.cfg.stereo:
-            frame = self.method_client.stereo_frame(pose, mode="yoro", with_rendered=record)
+            # the disocclusion masks are not recorded: no read-back of them
+            frame = self.method_client.stereo_frame(pose, mode="yoro", with_rendered=record, masks=False)
             stereo = {"left": frame.left, "right": frame.right, "position": frame.other_camera.pose.position.tolist(),
                       "quat": frame.other_camera.pose.quat.tolist(), "cost_ratio": frame.cost_ratio}
             ms.update({f"stereo_{k}": v for k, v in frame.ms.items()})

@@ -255,12 +255,13 @@ class QuasarClient(MethodClient):
 
     # ------------------------------------------------------------------------------------------------ stereo
     def stereo_frame(self, pose: Pose, mode: str = "yoro", with_rendered: bool = False, dominant: str = "left",
-                     ipd: float = DEFAULT_IPD_M) -> StereoFrame:
+                     ipd: float = DEFAULT_IPD_M, masks: bool = True) -> StereoFrame:
         """Both eyes at head `pose` from one mesh render (client.stereo.MeshStereo): the dominant eye is drawn
         from the quad mesh, the other synthesized from its colour and depth (`mode` "yoro"; "rerender" also
         re-renders the other eye's disoccluded pixels from the mesh; "both" renders both eyes). `with_rendered`
-        also renders the other eye normally, for its image and the cost ratio. Before any payload, both eyes
-        are black. The stage times are also in `stats["stereo_ms"]`."""
+        also renders the other eye normally, for its image and the cost ratio; `masks=False` skips reading back
+        the disocclusion masks (the frame's fractions and mask are None). Before any payload, both eyes are black.
+        The stage times are also in `stats["stereo_ms"]`."""
         self.coverage()    # the last `render`'s, read before the dominant eye is drawn into the same view
         stereo = self._mesh_stereo(dominant, ipd)
         head = Camera(pose, self.frustum, self.width, self.height)
@@ -270,7 +271,7 @@ class QuasarClient(MethodClient):
             black = np.zeros((self.height, self.width, 3), np.uint8)
             return StereoFrame(black, black.copy(), dominant, mode, stereo.eye_cameras(head)[1],
                                {"dominant": 0.0, "synthesize": 0.0, "rerender": 0.0})
-        frame = stereo.frame(self.mesh, self.view, self.atlas, head, mode, with_rendered)
+        frame = stereo.frame(self.mesh, self.view, self.atlas, head, mode, with_rendered, masks)
         self.stats["stereo_ms"] = dict(frame.ms)
         return frame
 
@@ -287,5 +288,5 @@ class QuasarClient(MethodClient):
     def render_stereo(self, pose: Pose, mode: str = "yoro") -> tuple[np.ndarray, np.ndarray]:
         """(left, right) eye images at head `pose`: the left eye rendered, the right one made by `mode` (see
         `stereo_frame`)."""
-        frame = self.stereo_frame(pose, mode)
+        frame = self.stereo_frame(pose, mode, masks=False)
         return frame.left, frame.right

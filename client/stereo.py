@@ -479,8 +479,8 @@ class StereoFrame:
     other_camera: Camera                  # the eye that was synthesized
     ms: dict
     rendered_other: np.ndarray | None = None   # the other eye rendered from the same mesh (with_rendered)
-    disoccluded_fraction: float = 0.0
-    rerender_fraction: float = 0.0
+    disoccluded_fraction: float | None = 0.0  # None: the masks were not read back (`masks=False`)
+    rerender_fraction: float | None = 0.0
     rerender_mask: np.ndarray | None = None    # (H, W) bool: the pixels mode 2 re-renders (None for "both")
 
     @property
@@ -525,8 +525,9 @@ class MeshStereo:
         return dominant, self.synth.other_eye(dominant)
 
     def frame(self, mesh: QuadMesh, view: MeshView, atlas: AtlasTexture, head: Camera, mode: str = "yoro",
-              with_rendered: bool = False) -> StereoFrame:
-        """Both eyes of `head` from `mesh` (drawn with `atlas`) and the client's `view` (a MeshView of this size)."""
+              with_rendered: bool = False, masks: bool = True) -> StereoFrame:
+        """Both eyes of `head` from `mesh` (drawn with `atlas`) and the client's `view` (a MeshView of this size).
+        `masks=False` skips reading back the disocclusion masks (the frame's fractions and mask are then None)."""
         if mode not in STEREO_MODES:
             raise ValueError(f"stereo mode must be one of {', '.join(STEREO_MODES)}, got {mode!r}")
         if (view.width, view.height) != (self.synth.width, self.synth.height):
@@ -555,8 +556,11 @@ class MeshStereo:
                     return self.other_view.color
                 result, ms["rerender"] = _timed(ctx, lambda: self.synth.rerender_disoccluded(draw, result))
             other_img = result.read_color()
-            disoccluded, mask = result.read_masks()
-            fractions = (float(disoccluded.mean()), float(mask.mean()))
+            if masks:
+                disoccluded, mask = result.read_masks()
+                fractions = (float(disoccluded.mean()), float(mask.mean()))
+            else:
+                fractions = (None, None)
         left, right = (dominant_img, other_img) if self.synth.dominant == "left" else (other_img, dominant_img)
         return StereoFrame(left, right, self.synth.dominant, mode, other_cam, ms, rendered, *fractions, mask)
 

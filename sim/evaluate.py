@@ -361,7 +361,7 @@ def _stereo_scorer(renderer: DeferredRenderer, spec: EvalSpec, client):
     def score(camera: Camera, t: float, image: np.ndarray) -> dict | None:
         if client.last_frame_id < 0:
             return None
-        frame = client.stereo_frame(camera.pose, mode="yoro", with_rendered=True)
+        frame = client.stereo_frame(camera.pose, mode="yoro", with_rendered=True, masks=False)
         return score_stereo_eye(renderer, camera, t, frame.other_camera.pose, frame.synthesized, frame.cost_ratio)
     return score
 

@@ -240,6 +240,9 @@ def test_stereo_left_is_the_rendered_eye_and_right_is_synthesized(stereo_client,
     assert client.stats["stereo_ms"] == frame.ms
     left, right = client.render_stereo(pose)
     assert np.array_equal(left, frame.left) and np.array_equal(right, frame.right)
+    unread = client.stereo_frame(pose, "yoro", masks=False)     # the same eyes, without the masks' read-back
+    assert np.array_equal(unread.left, frame.left) and np.array_equal(unread.right, frame.right)
+    assert unread.disoccluded_fraction is None and unread.rerender_fraction is None and unread.rerender_mask is None
 
 
 def test_stereo_mode2_rerenders_exactly_the_masked_pixels_from_the_mesh(stereo_client):

@@ -332,7 +332,8 @@ def test_a_stereo_client_draws_the_head_pose_image_only_for_recorded_frames(tmp_
         def coverage(self):
             return types.SimpleNamespace(figures=lambda: {"holes": 0.0})
 
-        def stereo_frame(self, pose, mode, with_rendered):
+        def stereo_frame(self, pose, mode, with_rendered, masks=True):
+            assert not masks                        # the masks are not recorded: not read back
             calls.append(f"stereo {with_rendered}")
             eye = np.zeros((2, 2, 3), np.uint8)
             return types.SimpleNamespace(left=eye, right=eye, other_camera=types.SimpleNamespace(pose=pose), ms={},
