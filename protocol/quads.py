@@ -826,7 +826,7 @@ def decode_quad_frame(
     depth = take("<f4", total_quads).astype(np.float32, copy=False)
     offsets = take("<f2", total_offsets * OFFSETS_PER_QUAD).astype(np.float16, copy=False).reshape(
         -1, OFFSETS_PER_QUAD)
-    del raw
+    raw = None   # the columns are read: drop this reference to the decompressed payload
     fields_all = unpack_quad_words(words)
     del words
     normals = unpack_normals(theta, phi)
