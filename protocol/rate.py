@@ -47,9 +47,11 @@ frame at a point is a large self-contained one) or, until it has been used, from
 by the ladder's measured ratio, times the frame rate. Frames are also *paced*: while the bytes sent and not yet reported exceed what the link holds in one
 round trip plus ``queue_target_s`` of queue, no new frame starts (:meth:`RateController.may_start`), so a backlog
 drains instead of being fed frames that would be stale when they arrive; and frames held back again and again
-(three within ``ack_window_s``) while the link queues (half the overuse threshold) mean the point sends more than
-the link carries even though the pacing keeps the delay under the threshold: the point then goes down to what was
-reported over that window. Without receive reports
+(three frames within ``ack_window_s``, each counted once however often it was asked for) while the link queues (half
+the overuse threshold) and what was reported over that window is under ``backoff`` x what the point makes at the
+session's frame interval mean the point sends more than the link carries even though the pacing keeps the delay
+under the threshold: the point then goes down to what was reported. (A server slower than the link makes less than
+its point allows, and its reports measure the server, not the link.) Without receive reports
 nothing is paced and the point only follows the ceiling.
 """
 from __future__ import annotations
@@ -414,6 +416,7 @@ class RateController:
         self._calm_index: int | None = None         # the point of the newest frame reported without queueing
         self._episode: list | None = None          # while the link queues: [index it began at, frames measured]
         self._paced: collections.deque[float] = collections.deque()     # when frames were held back
+        self._holding = False                       # the next frame has been held back (counted in _paced)
 
     # -- the ladder and predictions
 
@@ -517,6 +520,7 @@ class RateController:
             self._first_sent = float(now)
         while len(self._sent) > 512:
             self._sent.popitem(last=False)
+        self._holding = False
         table = self._bytes_ref if self_contained else self._bytes_res
         prev = table.get(index)
         table[index] = size_bytes if prev is None else (1 - self.config.ema) * prev + self.config.ema * size_bytes
@@ -709,8 +713,9 @@ class RateController:
             allowed = headroom * 1e6 / 8 * (min(r for _, r in self._rtts) + c.queue_target_s) + frame
         if inflight + frame > allowed:
             st.frames_paced += 1
-            if not self._paced or self._paced[-1] < now - 1e-3:     # one per frame held back, however often asked
+            if not self._holding:                   # one per frame held back, however often asked
                 self._paced.append(now)
+                self._holding = True
             return False
         return True
 
@@ -730,14 +735,17 @@ class RateController:
             st.index = self._best_fitting(c.target_mbps, frame_interval_s, self.headroom_mbps(now))
             self._last_change = now
             return st.index
-        # frames held back again and again while the link queues: the point sends more than the link carries, though
-        # the pacing keeps the delay below the overuse threshold; the link's rate is then what was reported over the
-        # last window
+        # frames held back again and again while the link queues, and what was reported over the last window clearly
+        # less than the point makes at the session's frame interval: the point sends more than the link carries,
+        # though the pacing keeps the delay below the overuse threshold, and the link's rate is what was reported. (A
+        # server slower than the link makes less than the point allows; its frames then wait now and then for the
+        # report of the one before, and the reports measure the server, not the link.)
         while self._paced and self._paced[0] < now - c.ack_window_s:
             self._paced.popleft()
         acked = self._acked_rate(now)
         queueing = st.queue_delay_s is not None and st.queue_delay_s > self.overuse_threshold_s / 2
-        if len(self._paced) >= 3 and queueing and acked is not None and now - self._last_change >= c.hold_up_s:
+        short = acked is not None and acked * 8 / 1e6 < c.backoff * self.predicted_mbps(st.index, frame_interval_s)
+        if len(self._paced) >= 3 and queueing and short and now - self._last_change >= c.hold_up_s:
             capacity = acked * 8 / 1e6
             st.capacity_mbps, self._headroom, self._last_overuse = capacity, (capacity, now), now
             new = self._best_fitting(c.backoff * capacity, frame_interval_s, capacity)

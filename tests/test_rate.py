@@ -205,15 +205,23 @@ def test_without_adaptation_a_slow_link_queues_and_frames_get_old():
     assert np.mean(_ages(totals, 2.0, 4.0)) > 3 * BOUND_MS
 
 
-def test_a_step_down_and_up_is_followed_within_half_a_second():
+def test_a_step_down_and_up_is_followed_within_half_a_second(monkeypatch):
     step = trace_from_schedule([(2.0, 100.0), (2.0, 15.0), (2.0, 100.0)], "step")
+    decisions = []                                                # (when, the point) after every report
+    report = RateController.report
+
+    def recording_report(self, now, entries, frame_interval_s):
+        report(self, now, entries, frame_interval_s)
+        decisions.append((now, self.index))
+    monkeypatch.setattr(RateController, "report", recording_report)
     totals = _run(6.0, rate_trace=step, start_mbps=100.0)
     points = [(f.t_sent, f.point_index) for f in totals.sent]
     top_before = max(i for t, i in points if 1.0 < t < 2.0)
     assert LADDER[top_before].mbps > 30                           # it climbed while the link was fast
-    # down: a lower point within 0.5 s of the step, and frames fresh again within 0.5 s
-    after = [i for t, i in points if 2.0 < t <= 2.5]
-    assert min(after) < top_before
+    # down: the controller goes to a lower point within 0.5 s of the step (its frames leave once what the fast link
+    # left in flight has crossed), and frames are fresh again within 0.5 s
+    assert min(i for t, i in decisions if 2.0 < t <= 2.5) < top_before
+    assert min(i for t, i in points if 2.0 < t <= 2.75) < top_before
     slow = [f for f in totals.sent if 2.5 < f.t_sent < 4.0]      # at most brief probes above what fits
     assert sum(f.bytes for f in slow) * 8 / 1.5 / 1e6 <= 15.0
     assert np.mean([LADDER[f.point_index].mbps <= 15 for f in slow]) > 0.75
@@ -222,6 +230,49 @@ def test_a_step_down_and_up_is_followed_within_half_a_second():
     # up: fresh frames within 0.5 s, and the controller climbs again
     assert np.mean(_ages(totals, 4.5, 6.0)) < BOUND_MS
     assert max(i for t, i in points if t > 4.5) > max(i for t, i in points if 3.0 < t < 4.0)
+
+
+def _slow_server(c: RateController, seconds: float = 20.0, interval: float = 0.134, seed: int = 0):
+    """A server that finishes a frame every ``interval`` s (the point allows 30 fps), asking ``may_start`` at every
+    60 Hz pose, over a 20 Mbit/s link with 20+-10 ms of delay, and each arrival and report later still by the two
+    event loops' own lateness (exponential, mean 30 and 15 ms), as live on two busy cores."""
+    rng = np.random.default_rng(seed)
+    free = last_arrive = next_frame = t = 0.0
+    pending, fid = [], 0
+    while t < seconds:
+        while pending and pending[0][0] <= t:
+            _, entry = pending.pop(0)
+            c.report(entry[2] + 0.02, [entry], interval)
+        if t >= next_frame and c.may_start(t, interval):
+            index = c.choose(t, interval)
+            reference = fid % 5 == 0
+            size = int(LADDER[index].mbps * 1e6 / 8 / 30 * (1.2 if reference else 0.4))
+            c.frame_sent(t, fid, size, index, self_contained=reference)
+            free = max(free, t) + size * 8 / 20e6
+            last_arrive = max(free + 0.02 + rng.uniform(-0.01, 0.01) + rng.exponential(0.03), last_arrive)
+            pending.append((last_arrive + 0.02 + rng.exponential(0.015), (fid, size, last_arrive)))
+            fid, next_frame = fid + 1, t + interval
+        t += 1 / 60
+    return c
+
+
+def test_a_server_slower_than_the_link_is_not_taken_for_a_slow_link():
+    """The top point's frames, made at 7.5 a second, fill 45% of the link. The pacing's ack clock holds a frame now
+    and then until the one before is reported (a round trip is about a frame interval here), and the reports of the
+    last 0.5 s hold three or four frames: what they delivered is what the server made, not what the link carries.
+    The controller keeps the top point; a frame held back counts once however often it is asked for."""
+    for seed in range(4):
+        c = _slow_server(_controller(start_mbps=100), seed=seed)
+        assert c.state.frames_paced > 0                            # frames were held back ...
+        assert c.state.decreases == 0 and c.index == len(LADDER) - 1, seed    # ... and nothing stepped down
+    # asked at every pose while one frame waits: one frame held back
+    c = _controller()
+    for i in range(4):
+        c.frame_sent(i / 30, i, 50_000)
+    assert not any(c.may_start(0.2 + k / 60, 1 / 30) for k in range(5))
+    assert c.state.frames_paced == 5 and len(c._paced) == 1
+    c.frame_sent(0.3, 4, 50_000)
+    assert not c.may_start(0.31, 1 / 30) and len(c._paced) == 2
 
 
 def test_a_client_that_never_reports_is_not_held_back():
