@@ -416,7 +416,7 @@ class RateController:
         self._calm_index: int | None = None         # the point of the newest frame reported without queueing
         self._episode: list | None = None          # while the link queues: [index it began at, frames measured]
         self._paced: collections.deque[float] = collections.deque()     # when frames were held back
-        self._holding = False                       # the next frame has been held back (counted in _paced)
+        self._holding = False                       # the frame waiting to start was held back (counted in _paced)
 
     # -- the ladder and predictions
 
@@ -520,7 +520,7 @@ class RateController:
             self._first_sent = float(now)
         while len(self._sent) > 512:
             self._sent.popitem(last=False)
-        self._holding = False
+        self._holding = False                       # (also when it started without asking may_start)
         table = self._bytes_ref if self_contained else self._bytes_res
         prev = table.get(index)
         table[index] = size_bytes if prev is None else (1 - self.config.ema) * prev + self.config.ema * size_bytes
@@ -701,6 +701,7 @@ class RateController:
         c, st = self.config, self.state
         st.in_flight_bytes = inflight = self.in_flight_bytes(now)
         if inflight == 0 or (not self._reports and self._silent(now)):
+            self._holding = False
             return True
         frame = self.bytes_per_frame(st.index)
         headroom = self.headroom_mbps(now)
@@ -717,6 +718,7 @@ class RateController:
                 self._paced.append(now)
                 self._holding = True
             return False
+        self._holding = False                       # this frame starts: the next one held back is another
         return True
 
     def _silent(self, now: float) -> bool:
