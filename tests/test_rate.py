@@ -117,24 +117,33 @@ def test_start_point_ceiling_and_slow_start_window():
     assert c.may_start(2.2, 1 / 30)
 
 
-def _feed(c: RateController, rate_mbit: float, seconds: float, t0: float = 0.0, size_of=None, delay=0.05):
-    """Frames at 30 Hz of the controller's chosen size through a link of `rate_mbit`; reports after 2x `delay`."""
-    free, pending, t, fid = t0, [], t0, int(t0 * 1000)
+def _feed(c: RateController, rate_mbit: float, seconds: float, delay: float = 0.05, interval: float = 1 / 30,
+          tick: float | None = None, size_of=None, late=None, seed: int = 0):
+    """Frames of the controller's chosen point through a link of `rate_mbit` with a one-way `delay`: the server starts
+    one at most every `interval` (the frame interval the controller is told), asking `may_start` every `tick` (default
+    `interval`); `size_of(index, frame_id)` -> (bytes, self-contained), by default the ladder's bytes per frame at 30
+    fps; reports come back after another `delay`. `late(rng)` -> (s, s) adds to each frame's arrival and report (the
+    link's jitter and the event loops' lateness; arrivals keep their order)."""
+    rng = np.random.default_rng(seed)
+    free = last_arrive = next_frame = t = 0.0
+    pending, fid = [], 0
     c.history = []
-    while t < t0 + seconds:
+    while t < seconds:
         while pending and pending[0][0] <= t:
-            _, entry = pending.pop(0)
-            c.report(entry[2] + delay, [entry], 1 / 30)
-        if c.may_start(t, 1 / 30):
-            index = c.choose(t, 1 / 30)
+            t_report, entry = pending.pop(0)
+            c.report(t_report, [entry], interval)
+        if t >= next_frame - 1e-9 and c.may_start(t, interval):
+            index = c.choose(t, interval)
             c.history.append((t, index))
-            size = size_of(index) if size_of else int(LADDER[index].mbps * 1e6 / 8 / 30)
-            c.frame_sent(t, fid, size, index)
+            size, self_contained = size_of(index, fid) if size_of else (int(LADDER[index].mbps * 1e6 / 8 / 30), False)
+            c.frame_sent(t, fid, size, index, self_contained=self_contained)
             free = max(free, t) + size * 8 / (rate_mbit * 1e6)
-            pending.append((free + delay * 2, (fid, size, free + delay)))
+            arrive_late, report_late = late(rng) if late else (0.0, 0.0)
+            last_arrive = max(free + delay + arrive_late, last_arrive)
+            pending.append((last_arrive + delay + report_late, (fid, size, last_arrive)))
             pending.sort()
-            fid += 1
-        t += 1 / 30
+            fid, next_frame = fid + 1, t + interval
+        t += tick or interval
     return c
 
 
@@ -232,28 +241,12 @@ def test_a_step_down_and_up_is_followed_within_half_a_second(monkeypatch):
     assert max(i for t, i in points if t > 4.5) > max(i for t, i in points if 3.0 < t < 4.0)
 
 
-def _slow_server(c: RateController, seconds: float = 20.0, interval: float = 0.134, seed: int = 0):
-    """A server that finishes a frame every ``interval`` s (the point allows 30 fps), asking ``may_start`` at every
-    60 Hz pose, over a 20 Mbit/s link with 20+-10 ms of delay, and each arrival and report later still by the two
-    event loops' own lateness (exponential, mean 30 and 15 ms), as live on two busy cores."""
-    rng = np.random.default_rng(seed)
-    free = last_arrive = next_frame = t = 0.0
-    pending, fid = [], 0
-    while t < seconds:
-        while pending and pending[0][0] <= t:
-            _, entry = pending.pop(0)
-            c.report(entry[2] + 0.02, [entry], interval)
-        if t >= next_frame and c.may_start(t, interval):
-            index = c.choose(t, interval)
-            reference = fid % 5 == 0
-            size = int(LADDER[index].mbps * 1e6 / 8 / 30 * (1.2 if reference else 0.4))
-            c.frame_sent(t, fid, size, index, self_contained=reference)
-            free = max(free, t) + size * 8 / 20e6
-            last_arrive = max(free + 0.02 + rng.uniform(-0.01, 0.01) + rng.exponential(0.03), last_arrive)
-            pending.append((last_arrive + 0.02 + rng.exponential(0.015), (fid, size, last_arrive)))
-            fid, next_frame = fid + 1, t + interval
-        t += 1 / 60
-    return c
+_SLOW = dict(   # a server that finishes a frame every 134 ms (the point allows 30 fps), asking at every 60 Hz pose, over
+    # a link with 20+-10 ms of delay, each arrival and report later still by the two event loops' own lateness
+    # (exponential, mean 30 and 15 ms), as live on two busy cores; every fifth frame self-contained, 3x a residual one
+    delay=0.02, interval=0.134, tick=1 / 60,
+    size_of=lambda i, fid: (int(LADDER[i].mbps * 1e6 / 8 / 30 * (1.2 if fid % 5 == 0 else 0.4)), fid % 5 == 0),
+    late=lambda rng: (rng.uniform(-0.01, 0.01) + rng.exponential(0.03), rng.exponential(0.015)))
 
 
 def test_a_server_slower_than_the_link_is_not_taken_for_a_slow_link():
@@ -262,7 +255,7 @@ def test_a_server_slower_than_the_link_is_not_taken_for_a_slow_link():
     last 0.5 s hold three or four frames: what they delivered is what the server made, not what the link carries.
     The controller keeps the top point; a frame held back counts once however often it is asked for."""
     for seed in range(4):
-        c = _slow_server(_controller(start_mbps=100), seed=seed)
+        c = _feed(_controller(start_mbps=100), 20.0, 20.0, **_SLOW, seed=seed)
         assert c.state.frames_paced > 0                            # frames were held back ...
         assert c.state.decreases == 0 and c.index == len(LADDER) - 1, seed    # ... and nothing stepped down
     # asked at every pose while one frame waits: one frame held back
