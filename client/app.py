@@ -57,6 +57,7 @@ from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorM
 from quadcast.protocol.methods import METHODS, STEREO_METHODS, MethodConfig
 from quadcast.protocol.session import ClientSession, RequestReference
 from quadcast.render.camera import Pose
+from quadcast.render.gaze import GazeTrace
 from quadcast.render.scene import load_scene, place_trace
 from quadcast.render.traces import SPAWN, resolve_trace
 from quadcast.render.worker import GLWorker
@@ -98,6 +99,7 @@ class ClientConfig:
     duration: float | None = None         # seconds; default: the rest of the trace after `start`
     start: float = 0.0                    # trace time to start at
     anchor: str | None = None             # re-anchor the trace into the scene ("spawn" or "x,y,z[,yaw_deg]")
+    gaze: str | None = None               # a gaze trace (render/gaze.py) to send with the poses; None: not tracked
     display_hz: float = 60.0
     pose_hz: float = 30.0
     record_every: int = 1
@@ -183,6 +185,7 @@ class LiveClient:
         if config.anchor is not None:   # its pose at `start` goes to the anchor (the scene's spawn point for "spawn")
             scene = load_scene(config.scene) if config.anchor.strip() == SPAWN else None
             self.trace = place_trace(self.trace, config.anchor, scene, config.start)
+        self.gaze = GazeTrace.load(config.gaze) if config.gaze is not None else None
         remaining = self.trace.duration - config.start
         self.duration = min(config.duration, remaining) if config.duration is not None else remaining
         self.out = Path(config.out)
@@ -322,7 +325,8 @@ class LiveClient:
         next_tick = loop.time()
         while True:
             t = self.now_t()
-            await channel.send(PoseUpdate.from_pose(seq, t, self.pose_at(t)))
+            gaze = None if self.gaze is None else self.gaze.angles_at(t - self.cfg.start)
+            await channel.send(PoseUpdate.from_pose(seq, t, self.pose_at(t), gaze))
             seq += 1
             next_tick = max(next_tick + period, loop.time())
             await asyncio.sleep(next_tick - loop.time())
@@ -464,6 +468,8 @@ class LiveClient:
                     "image": name, "frame_id": int(n.frame_id), "age_ms": (t - n.t) * 1e3,
                     "pose_error_cm": render_pose.distance_to(pose) * 100,
                     "pose_error_deg": render_pose.angle_to_deg(pose), "client_ms": ms, **holes}
+                if self.gaze is not None:           # where the viewer looked: the foveal score centres on it
+                    entry["gaze_deg"] = self.gaze.angles_at(t - self.cfg.start).tolist()
                 if stereo is not None:
                     left, right = f"frames/left_{index:05d}.png", f"frames/right_{index:05d}.png"
                     images.update({left: stereo["left"], right: stereo["right"]})

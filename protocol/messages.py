@@ -16,7 +16,8 @@ message            id   body
 =================  ===  ==========================================================================
 Hello              1    version u16, width u32, height u32, fovy_deg f64, method str, token str
 Welcome            2    session_id u64, server_hz f64
-PoseUpdate         3    seq u64, t_client f64, position 3 x f64, quat 4 x f64 (xyzw); bounded, see below
+PoseUpdate         3    seq u64, t_client f64, position 3 x f64, quat 4 x f64 (xyzw)[, gaze 2 x f64 (x_deg,
+                        y_deg) -- only when the client tracks it]; bounded, see below
 Frame              4    the rest of the message: an encoded :class:`quadcast.protocol.frame.FramePayload`
 ReferenceRequest   5    reason str
 ErrorMessage       6    code u16, text str[, retry_after_ms u32 -- only when non-zero (ErrorCode.BUSY)]
@@ -25,8 +26,9 @@ ReceiveReport      8    count u16, then per frame: frame_id u32, bytes u32, t_ar
 =================  ===  ==========================================================================
 
 A PoseUpdate is accepted only if it can be rendered (:mod:`quadcast.protocol.pose`): coordinates within
-+-1e5 m, a quaternion whose norm is in [1e-3, 1e3], a time within +-1e10 s; anything else is a ProtocolError
-naming the field.
++-1e5 m, a quaternion whose norm is in [1e-3, 1e3], a time within +-1e10 s, a gaze (where the viewer looks: its
+angles from the view axis, to the right and up) within +-89 degrees; anything else is a ProtocolError naming the
+field. A PoseUpdate without a gaze is the one a client that does not track the eyes sends (the browser viewer).
 
 Typical session: client sends ``Hello``; server answers ``Welcome`` (or ``ErrorMessage`` and closes); then the
 client streams ``PoseUpdate`` s and the server ``Frame`` s; a client that lost its reference state sends
@@ -54,7 +56,7 @@ import numpy as np
 
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import DEFAULT_MAX_FRAME_BYTES, FramePayload, decode_frame_payload, encode_frame_payload
-from quadcast.protocol.pose import check_position, check_quat, check_time
+from quadcast.protocol.pose import check_gaze, check_position, check_quat, check_time
 
 __all__ = [
     "PROTOCOL_VERSION",
@@ -198,32 +200,36 @@ class Welcome:
 
 @dataclass(frozen=True, eq=False)
 class PoseUpdate:
-    """Client -> server: the client's head pose (world position, xyzw quaternion) at client time ``t_client`` (s).
+    """Client -> server: the client's head pose (world position, xyzw quaternion) at client time ``t_client`` (s),
+    and where the viewer looked then (``gaze``: degrees from the view axis, to the right and up; None: not tracked).
 
     ``position`` and ``quat`` are read-only float64 arrays of shape (3,) and (4,); the quaternion is sent as given
-    (not normalized). All three are bounded so that any accepted pose renders (:mod:`quadcast.protocol.pose`).
+    (not normalized). All are bounded so that any accepted pose renders (:mod:`quadcast.protocol.pose`).
     """
 
     seq: int
     t_client: float
     position: np.ndarray
     quat: np.ndarray
+    gaze: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "seq", _check_int("PoseUpdate.seq", self.seq, _U64_MAX))
         object.__setattr__(self, "t_client", check_time("PoseUpdate.t_client", self.t_client))
         object.__setattr__(self, "position", check_position("PoseUpdate.position", self.position))
         object.__setattr__(self, "quat", check_quat("PoseUpdate.quat", self.quat))
+        if self.gaze is not None:
+            object.__setattr__(self, "gaze", check_gaze("PoseUpdate.gaze", self.gaze))
 
     @classmethod
-    def from_pose(cls, seq: int, t_client: float, pose) -> "PoseUpdate":
+    def from_pose(cls, seq: int, t_client: float, pose, gaze=None) -> "PoseUpdate":
         """Build from anything with ``.position`` (3,) and ``.quat`` (4,) (e.g. :class:`quadcast.render.camera.Pose`)."""
-        return cls(seq, t_client, pose.position, pose.quat)
+        return cls(seq, t_client, pose.position, pose.quat, gaze)
 
     def __eq__(self, other) -> bool:
         if not isinstance(other, PoseUpdate):
             return NotImplemented
-        return (self.seq == other.seq and self.t_client == other.t_client
+        return (self.seq == other.seq and self.t_client == other.t_client and self.gaze == other.gaze
                 and np.array_equal(self.position, other.position) and np.array_equal(self.quat, other.quat))
 
     __hash__ = None  # type: ignore[assignment]
@@ -331,6 +337,7 @@ _NAME_OF = {t: cls.__name__ for cls, t in _TYPE_OF.items()}
 _HELLO = struct.Struct("<HIId")
 _WELCOME = struct.Struct("<Qd")
 _POSE = struct.Struct("<Qd3d4d")
+_GAZE = struct.Struct("<2d")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _REPORT_ENTRY = struct.Struct("<IId")
@@ -348,7 +355,8 @@ def _body(msg: Message) -> bytes:
     if isinstance(msg, Welcome):
         return _WELCOME.pack(msg.session_id, msg.server_hz)
     if isinstance(msg, PoseUpdate):
-        return _POSE.pack(msg.seq, msg.t_client, *msg.position.tolist(), *msg.quat.tolist())
+        body = _POSE.pack(msg.seq, msg.t_client, *msg.position.tolist(), *msg.quat.tolist())
+        return body if msg.gaze is None else body + _GAZE.pack(*msg.gaze)
     if isinstance(msg, Frame):
         return msg.payload
     if isinstance(msg, ReferenceRequest):
@@ -439,8 +447,9 @@ def decode_message_body(mtype: int, body: bytes | memoryview) -> Message:
             return Welcome(session_id, hz)
         if t is MessageType.POSE_UPDATE:
             seq, t_client, *v = r.unpack(_POSE, "seq/t_client/position/quat")
+            gaze = r.unpack(_GAZE, "gaze") if r.pos < len(r.body) else None
             r.end()
-            return PoseUpdate(seq, t_client, v[:3], v[3:])
+            return PoseUpdate(seq, t_client, v[:3], v[3:], gaze)
         if t is MessageType.FRAME:
             return Frame(r.rest())
         if t is MessageType.REFERENCE_REQUEST:

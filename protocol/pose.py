@@ -10,6 +10,9 @@ A pose is a position (metres), a quaternion (x, y, z, w; sent as given, normaliz
   divides by ~0 nor overflows);
 - time: within +-:data:`MAX_TIME_S`.
 
+A pose may carry where the viewer looks, its gaze: two angles from the view axis in degrees (x to the right, y up),
+each within +-:data:`MAX_GAZE_DEG` (a direction in front of the eye; :func:`gaze_direction` turns them into one).
+
 The checks raise ValueError naming the field; the decoders turn that into a ProtocolError.
 """
 from __future__ import annotations
@@ -18,8 +21,8 @@ import math
 
 import numpy as np
 
-__all__ = ["MAX_POSITION_M", "MIN_QUAT_NORM", "MAX_QUAT_NORM", "MAX_TIME_S", "check_position", "check_quat",
-           "check_time"]
+__all__ = ["MAX_POSITION_M", "MIN_QUAT_NORM", "MAX_QUAT_NORM", "MAX_TIME_S", "MAX_GAZE_DEG", "check_position",
+           "check_quat", "check_time", "check_gaze", "gaze_direction"]
 
 MAX_POSITION_M = 1e5
 """Largest absolute coordinate of a position, metres (100 km: any scene, far beyond any renderer's far plane)."""
@@ -30,6 +33,9 @@ MAX_QUAT_NORM = 1e3
 
 MAX_TIME_S = 1e10
 """Largest absolute pose time, seconds (covers a Unix-epoch clock; float64 still resolves microseconds there)."""
+
+MAX_GAZE_DEG = 89.0
+"""Largest absolute gaze angle from the view axis, degrees (either axis; beyond it the direction leaves the front)."""
 
 
 def _vector(name: str, value, n: int) -> np.ndarray:
@@ -80,3 +86,19 @@ def check_time(name: str, value) -> float:
     if abs(t) > MAX_TIME_S:
         raise ValueError(f"{name}: expected a time within +-{MAX_TIME_S:g} s, got {t!r}")
     return t
+
+
+def check_gaze(name: str, value) -> tuple[float, float]:
+    """A gaze ``(x_deg, y_deg)`` (to the right and up from the view axis) as two floats, each within
+    +-MAX_GAZE_DEG, or ValueError naming ``name``."""
+    g = _vector(name, value, 2)
+    if float(np.abs(g).max()) >= MAX_GAZE_DEG:
+        raise ValueError(f"{name}: expected angles within +-{MAX_GAZE_DEG:g} degrees of the view axis, got {g.tolist()}")
+    return float(g[0]), float(g[1])
+
+
+def gaze_direction(angles_deg) -> np.ndarray:
+    """The unit view-space direction (the camera looks down -Z) of a gaze ``(x_deg, y_deg)`` (see :func:`check_gaze`)."""
+    x, y = np.tan(np.radians(np.asarray(angles_deg, np.float64)))
+    d = np.array([x, y, -1.0])
+    return d / np.linalg.norm(d)

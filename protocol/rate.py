@@ -65,8 +65,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["OperatingPoint", "Ladder", "LadderError", "pareto_front", "ladder_points", "load_ladder", "RateConfig",
-           "RateController", "RateState", "fovea_scale", "LADDER_FILE"]
+__all__ = ["OperatingPoint", "Ladder", "LadderError", "pareto_front", "ladder_points", "load_ladder", "resolve_point",
+           "RateConfig", "RateController", "RateState", "fovea_scale", "LADDER_FILE"]
 
 LADDER_FILE = "ladder.json"
 """The measured ladder, beside this module (``quadcast bench ladder --write`` rewrites it)."""
@@ -307,6 +307,17 @@ def load_ladder(path: str | Path | None = None) -> Ladder:
     except OSError as exc:
         raise LadderError(f"ladder {str(path)!r}: {exc.strerror or exc}") from None
     return Ladder.from_json(text, str(path))
+
+
+def resolve_point(spec: "str | OperatingPoint", ladder: Ladder | None = None) -> OperatingPoint:
+    """An operating point: as given, ``key=value,...`` (:meth:`OperatingPoint.parse`), or a point of ``ladder`` (the
+    shipped one if None) by name. ValueError / LadderError name what is wrong."""
+    if isinstance(spec, OperatingPoint):
+        return spec
+    if "=" in spec:
+        return OperatingPoint.parse(spec)
+    ladder = ladder if ladder is not None else load_ladder()
+    return ladder[ladder.index(spec)]
 
 
 # ------------------------------------------------------------------------------------------------ controller

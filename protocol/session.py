@@ -12,11 +12,11 @@ So the same events give the same decisions in both (``tests/test_session.py`` ch
 Server side -- events: :meth:`ServerSession.pose_received`, :meth:`~ServerSession.reference_requested`,
 :meth:`~ServerSession.frame_encoded`, :meth:`~ServerSession.frame_sent`, :meth:`~ServerSession.report_received`;
 decisions: :class:`EncodeFrame` (render and encode for this predicted pose and display time, self-contained or
-not, at this operating point, with how far the head strayed from the last frames' predicted rotations) and the
-frames to send, in order, from :meth:`~ServerSession.next_to_send` (a bounded queue that drops stale frames but
-never breaks a reference chain). With a rate controller
-(``ServerSessionConfig.rate``, :mod:`quadcast.protocol.rate`) the session also picks each frame's operating point
-from the client's receive reports and holds new frames back while the link is backed up.
+not, at this operating point, with how far the head strayed from the last frames' predicted rotations and where
+the viewer looks) and the frames to send, in order, from :meth:`~ServerSession.next_to_send` (a bounded queue that
+drops stale frames but never breaks a reference chain). With a rate controller (``ServerSessionConfig.rate``,
+:mod:`quadcast.protocol.rate`) the session also picks each frame's operating point from the client's receive reports
+and holds new frames back while the link is backed up.
 
 Client side -- events: :meth:`ClientSession.frame_arrived`, :meth:`~ClientSession.frame_received`,
 :meth:`~ClientSession.frame_processed`, :meth:`~ClientSession.frames_dropped`, :meth:`~ClientSession.tick`,
@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from quadcast.protocol.pose import MAX_POSITION_M, MAX_TIME_S
+from quadcast.protocol.pose import MAX_POSITION_M, MAX_TIME_S, check_gaze
 from quadcast.protocol.prediction import PosePredictor, PredictorSettings
 from quadcast.protocol.rate import OperatingPoint, RateConfig, RateController
 
@@ -175,6 +175,9 @@ class EncodeFrame:
     # how far the head's rotation strayed from the predicted one while recent frames were shown (degrees;
     # ServerSession.rotation_miss_deg): what a view wider than the frame must cover. None: not measured yet
     rotation_miss_deg: float | None = None
+    # where the viewer looked (degrees from the view axis, right and up) as the newest pose taken said: what a
+    # foveated frame centres on. None: that pose carried no gaze
+    gaze_deg: tuple[float, float] | None = None
 
 
 @dataclass
@@ -183,6 +186,7 @@ class ServerCounters:
 
     poses: int = 0
     poses_ignored: int = 0        # out of order or duplicate
+    gazes: int = 0                # poses taken that carried the viewer's gaze
     reference_requests: int = 0
     frames_encoded: int = 0
     encode_s_total: float = 0.0
@@ -208,6 +212,7 @@ class ServerSession:
         self.counters = ServerCounters()
         self.encode_estimate_s = self.config.encode_s
         self._latest: tuple[float, float, np.ndarray, np.ndarray] | None = None   # arrival, t_client, p, q
+        self._gaze: tuple[float, float] | None = None    # the gaze the newest pose taken carried
         self._want_reference = False
         self._encoding = False
         self._pose_pending = False
@@ -231,12 +236,18 @@ class ServerSession:
         """The session started (its client was welcomed): the idle clock starts."""
         self._last_traffic = float(now)
 
-    def pose_received(self, now: float, t_client: float, position, quat) -> EncodeFrame | None:
-        """A client pose arrived at ``now``. Raises ValueError for a pose the predictor cannot use."""
+    def pose_received(self, now: float, t_client: float, position, quat,
+                      gaze_deg: tuple[float, float] | None = None) -> EncodeFrame | None:
+        """A client pose arrived at ``now``, with the viewer's gaze at its time if the client tracks it (degrees,
+        :func:`quadcast.protocol.pose.check_gaze`). Raises ValueError for a pose the predictor cannot use or a gaze
+        out of bounds."""
         self.counters.poses += 1
+        gaze = None if gaze_deg is None else check_gaze("gaze", gaze_deg)
         if not self.predictor.observe(t_client, position, quat):
             self.counters.poses_ignored += 1
             return None
+        self._gaze = gaze
+        self.counters.gazes += gaze is not None
         latest = self.predictor.latest
         self._check_aims(latest.t, latest.quat)
         if self._latest is not None:
@@ -402,7 +413,8 @@ class ServerSession:
         hold = self.display_interval_s()
         arrival = display_t - cfg.hold_share * hold
         self._aims.append([arrival, arrival + hold, quat / np.linalg.norm(quat), 0.0])
-        return EncodeFrame(position, quat, display_t, reference, float(now), point, index, self.rotation_miss_deg())
+        return EncodeFrame(position, quat, display_t, reference, float(now), point, index, self.rotation_miss_deg(),
+                           self._gaze)
 
 
 # ------------------------------------------------------------------------------------------------ client

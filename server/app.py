@@ -47,7 +47,6 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-import numpy as np
 
 from quadcast.protocol.admission import Admission, Refusal, ServerLimits, Ticket
 from quadcast.protocol.errors import ProtocolError
@@ -55,7 +54,7 @@ from quadcast.protocol.frame import encode_frame_payload, peek_frame_id
 from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
                                         ReceiveReport, ReferenceRequest, Welcome, encode_message)
 from quadcast.protocol.methods import METHODS, MethodConfig
-from quadcast.protocol.rate import RateConfig, load_ladder
+from quadcast.protocol.rate import RateConfig, load_ladder, resolve_point
 from quadcast.protocol.session import EncodeFrame, ServerCounters, ServerSession, ServerSessionConfig
 from quadcast.render.camera import Pose
 from quadcast.render.gl import WARM_UP_SIZE
@@ -111,6 +110,9 @@ class ServerConfig:
     adapt: bool = False                 # rate controller: each frame's operating point from the receive reports
     target_mbps: float | None = None    # the rate controller's ceiling (implies adapt)
     ladder: str | None = None           # the operating points (default: the measured ladder shipped)
+    # without a controller: every session's frames at this operating point (a ladder point's name or
+    # "key=value,...", quadcast.protocol.rate.resolve_point; quasar's knobs, other methods ignore it)
+    point: str | None = None
 
     def __post_init__(self) -> None:
         if self.worker not in ("process", "thread"):
@@ -132,6 +134,10 @@ class ServerConfig:
         self.limits()                    # ValueError naming a bad limit
         self._rate = RateConfig(load_ladder(self.ladder), self.target_mbps) \
             if self.adapt or self.target_mbps is not None else None      # ValueError / LadderError: bad ladder
+        if self.point is not None and self._rate is not None:
+            raise ValueError("--point fixes the operating point; --adapt chooses it: give one of them")
+        self._point = None if self.point is None else \
+            resolve_point(self.point, load_ladder(self.ladder) if "=" not in self.point else None)
         check_bind(self.host, self.token, tls=self.tls_cert is not None,
                    allow_plaintext_token=self.allow_plaintext_token)
 
@@ -150,7 +156,7 @@ class ServerConfig:
         return ServerSessionConfig(predict=self.predict, downlink_s=self.lead_ms / 1e3,
                                    max_prediction_s=self.max_prediction_s, queue_frames=self.queue_frames,
                                    min_frame_interval_s=1.0 / self.max_frame_hz, idle_timeout_s=self.idle_timeout,
-                                   rate=self._rate)
+                                   rate=self._rate, point=self._point)
 
 
 def check_bind(host: str, token: str, tls: bool = False, allow_plaintext_token: bool = False) -> None:
@@ -229,14 +235,9 @@ class SessionPipeline:
                               viewcell_radius=spec.viewcell_m, reference_every=spec.reference_every, crf=spec.crf)
         self.server = spec.make_server(spec.method, self.renderer, config)
 
-    def encode(self, position, quat, t: float, reference: bool, point=None,
-               rotation_miss_deg: float | None = None) -> tuple[bytes, bool]:
-        if reference:
-            self.server.request_reference()
-        if point is not None:
-            self.server.apply_operating_point(point)
-        self.server.set_rotation_miss(rotation_miss_deg)
-        payload = self.server.encode(Pose(np.asarray(position, np.float64), np.asarray(quat, np.float64)), t)
+    def encode(self, decision: EncodeFrame) -> tuple[bytes, bool]:
+        """The frame `decision` asks for (:meth:`~quadcast.server.method.MethodServer.encode_decision`)."""
+        payload = self.server.encode_decision(decision)
         return encode_frame_payload(payload), payload.self_contained
 
     def warm_up(self, frames: int = WARM_UP_FRAMES) -> None:
@@ -292,11 +293,10 @@ class SessionHost:
         self.pipeline = SessionPipeline(spec, scene=self.scene, renderer=self.renderer)
         return os.getpid()
 
-    def encode(self, position, quat, t: float, reference: bool, point=None,
-               rotation_miss_deg: float | None = None) -> tuple[bytes, bool]:
+    def encode(self, decision: EncodeFrame) -> tuple[bytes, bool]:
         if self.pipeline is None:
             raise RuntimeError("SessionHost.encode: no pipeline built")
-        return self.pipeline.encode(position, quat, t, reference, point, rotation_miss_deg)
+        return self.pipeline.encode(decision)
 
     def close(self) -> None:
         if self.pipeline is not None:
@@ -322,9 +322,8 @@ class _ThreadWorker:
                                                timeout)
         return self.pid
 
-    async def encode(self, position, quat, t: float, reference: bool, point=None,
-                     rotation_miss_deg: float | None = None) -> tuple[bytes, bool]:
-        return await self.gl.call(self.pipeline.encode, position, quat, t, reference, point, rotation_miss_deg)
+    async def encode(self, decision: EncodeFrame) -> tuple[bytes, bool]:
+        return await self.gl.call(self.pipeline.encode, decision)
 
     @property
     def death(self) -> str | None:
@@ -362,10 +361,8 @@ class _ProcessWorker:
         self.pid = await asyncio.wait_for(self.proc.call("build", self.spec), timeout)
         return self.pid
 
-    async def encode(self, position, quat, t: float, reference: bool, point=None,
-                     rotation_miss_deg: float | None = None) -> tuple[bytes, bool]:
-        return await self.proc.call("encode", np.asarray(position), np.asarray(quat), float(t), bool(reference),
-                                    point, rotation_miss_deg)
+    async def encode(self, decision: EncodeFrame) -> tuple[bytes, bool]:
+        return await self.proc.call("encode", decision)
 
     @property
     def death(self) -> str | None:
@@ -507,9 +504,9 @@ class Session:
             self.ticket.close()              # the session slot is free once its worker is gone
             c, q = self.core.counters, self.core.queue.counters
             self.server.session_ended(c)
-            log.info("session %d ended: %d poses, %d frames encoded (mean %.0f ms each), %d sent (%d bytes), "
-                     "%d reference requests, queue dropped %d stale + %d new, %d receive reports, %d frame starts "
-                     "held back for the link", self.id, c.poses, c.frames_encoded,
+            log.info("session %d ended: %d poses (%d with a gaze), %d frames encoded (mean %.0f ms each), %d sent "
+                     "(%d bytes), %d reference requests, queue dropped %d stale + %d new, %d receive reports, %d frame "
+                     "starts held back for the link", self.id, c.poses, c.gazes, c.frames_encoded,
                      c.encode_s_total * 1e3 / max(c.frames_encoded, 1), self.frames_sent, self.bytes_sent,
                      c.reference_requests, q.dropped_stale, q.dropped_new, c.reports, c.frames_paced)
 
@@ -547,7 +544,7 @@ class Session:
                 return
             if isinstance(msg, PoseUpdate):
                 try:
-                    decision = self.core.pose_received(loop.time(), msg.t_client, msg.position, msg.quat)
+                    decision = self.core.pose_received(loop.time(), msg.t_client, msg.position, msg.quat, msg.gaze)
                 except ValueError as exc:
                     raise ProtocolError(f"PoseUpdate: {exc}") from None
                 self._decide(decision)
@@ -578,9 +575,7 @@ class Session:
     async def _encode(self, decision: EncodeFrame) -> tuple[Frame, bool]:
         """One frame from the worker, as the wire message that carries it (the worker's bytes, not re-encoded)."""
         try:
-            data, self_contained = await self.worker.encode(decision.position, decision.quat, decision.display_t,
-                                                            decision.reference, decision.point,
-                                                            decision.rotation_miss_deg)
+            data, self_contained = await self.worker.encode(decision)
         except WorkerDied as exc:
             raise SessionError(ErrorCode.INTERNAL, f"session worker died: {exc}") from None
         except WorkerError as exc:

@@ -3,7 +3,11 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
+import numpy as np
+
 from quadcast.protocol.frame import FramePayload
+from quadcast.protocol.pose import gaze_direction
+from quadcast.protocol.session import EncodeFrame
 from quadcast.render.camera import Pose
 
 
@@ -38,6 +42,21 @@ class MethodServer(ABC):
 
     def request_reference(self) -> None:
         """The client lost its reference state: make the next frame self-contained (default: every frame is)."""
+
+    def encode_decision(self, decision: EncodeFrame) -> FramePayload:
+        """The frame a session core's decision asks for (:class:`quadcast.protocol.session.EncodeFrame`): made
+        self-contained if it says so, at its operating point, for its rotation miss and gaze (a decision without a
+        gaze leaves the gaze where the last one put it: the view centre until one does), for its predicted pose and
+        display time. The virtual-time replay and the live server's workers both encode through here."""
+        if decision.reference:
+            self.request_reference()
+        if decision.point is not None:
+            self.apply_operating_point(decision.point)
+        self.set_rotation_miss(decision.rotation_miss_deg)
+        if decision.gaze_deg is not None:
+            self.set_gaze(gaze_direction(decision.gaze_deg))
+        pose = Pose(np.asarray(decision.position, np.float64), np.asarray(decision.quat, np.float64))
+        return self.encode(pose, decision.display_t)
 
     def close(self) -> None:
         pass

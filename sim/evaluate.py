@@ -11,7 +11,7 @@ disocclusions rather than what lies beyond the rendered frame); the summary has 
 ``black_frames``, the display frames shown before the first payload plus the shown frames with no pixel drawn.
 
 FLIP is reported over the whole frame (`flip`) and over the central 20 degrees around the gaze point (`flip_fovea`):
-the view centre, or where a gaze trace (`gaze`, sim/gaze.py) says the viewer looks at that display time. With a rate limit (`rate_mbit`, or a Mahimahi `rate_trace`), a rate controller (`adapt`,
+the view centre, or where a gaze trace (`gaze`, render/gaze.py) says the viewer looks at that display time. With a rate limit (`rate_mbit`, or a Mahimahi `rate_trace`), a rate controller (`adapt`,
 `target_mbps` as its ceiling) or a fixed operating point (`point`), the summary also has `age_ms` (mean frame age
 over every display tick: the display time minus the time the shown frame was predicted for), `age_bound_ms` (the
 link latency plus two server frame intervals) and a `timeline`: every frame sent (time, bytes, arrival, operating
@@ -35,7 +35,8 @@ from quadcast.methods import make_client, make_server
 from quadcast.protocol.frame import residual_to_reference_bytes
 from quadcast.protocol.methods import MethodConfig
 from quadcast.protocol.prediction import DEFAULT_PREDICTOR, PredictorSettings
-from quadcast.protocol.rate import Ladder, OperatingPoint, RateConfig, load_ladder
+from quadcast.protocol.pose import gaze_direction
+from quadcast.protocol.rate import OperatingPoint, RateConfig, load_ladder, resolve_point
 from quadcast.sim.metrics import compare
 from quadcast.sim.replay import DisplayedFrame, ReplayConfig, replay
 from quadcast.sim.report import FrameImages, format_figure, write_frames_csv, write_report_html, write_summary_json
@@ -74,18 +75,9 @@ class EvalSpec:
     target_mbps: float | None = None   # the controller's ceiling (implies adapt)
     point: str | OperatingPoint | None = None   # a fixed operating point: a ladder point's name or "key=value,..."
     ladder: str | None = None      # the ladder file (default: the measured one shipped with quadcast)
-    gaze: str | None = None        # a gaze trace (sim/gaze.py): foveation and flip_fovea around it, not the centre
+    gaze: str | None = None        # a gaze trace (render/gaze.py): foveation and flip_fovea around it, not the centre
     server_frame_ms: float = 0.0   # virtual time the server takes per frame (a live server's measured frame time
     #                                replays the rate it kept; 0: the server keeps the 30 Hz pose rate)
-
-
-def resolve_point(spec: str | OperatingPoint, ladder: Ladder) -> OperatingPoint:
-    """An operating point: as given, a ladder point by name, or ``key=value,...`` (:meth:`OperatingPoint.parse`)."""
-    if isinstance(spec, OperatingPoint):
-        return spec
-    if "=" in spec:
-        return OperatingPoint.parse(spec)
-    return ladder[ladder.index(spec)]
 
 
 def _stats(values) -> dict:
@@ -131,15 +123,20 @@ class _Scorer:
         return [f for _, f in self.worst]
 
     def score(self, index: int, t: float, pose: Pose, image: np.ndarray, extra: dict,
-              holes: np.ndarray | None = None) -> None:
-        """Score one shown frame; `holes` is its (H, W) hole mask when the client reported one."""
+              holes: np.ndarray | None = None, gaze_deg=None) -> None:
+        """Score one shown frame; `holes` is its (H, W) hole mask when the client reported one; `gaze_deg` where the
+        viewer looked (a live client's recorded gaze; else the scorer's gaze trace at `t`, else the view centre)."""
         if extra.get("frame_id", 0) < 0:
             return
         camera = Camera.perspective(pose, self.width, self.height, self.fovy)
         gt = self.renderer.render_color(camera, t)
         s = compare(gt, image)
-        fovea = self.fovea if self.gaze is None else \
-            self._view.eccentricity_deg(self.gaze.direction_at(t)) <= FOVEA_RADIUS_DEG
+        if gaze_deg is not None:
+            fovea = self._view.eccentricity_deg(gaze_direction(gaze_deg)) <= FOVEA_RADIUS_DEG
+        elif self.gaze is not None:
+            fovea = self._view.eccentricity_deg(self.gaze.direction_at(t)) <= FOVEA_RADIUS_DEG
+        else:
+            fovea = self.fovea
         rec = {"frame": index, "t": t, "flip": s.flip, "flip_fovea": float(np.mean(s.flip_map[fovea])),
                "ssim": s.ssim, "psnr": s.psnr, **extra}
         self.records.append(rec)
@@ -182,7 +179,7 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     from quadcast.sim.ratetrace import resolve_rate_trace
     rate_trace = resolve_rate_trace(spec.rate_trace) if spec.rate_trace is not None else None
     ladder = load_ladder(spec.ladder) if adapt or isinstance(spec.point, str) else None
-    from quadcast.sim.gaze import GazeTrace
+    from quadcast.render.gaze import GazeTrace
     gaze = GazeTrace.load(spec.gaze) if spec.gaze is not None else None
     point = resolve_point(spec.point, ladder) if spec.point is not None else None
     renderer = DeferredRenderer(scene)
@@ -424,7 +421,8 @@ def evaluate_recording(directory: str | Path) -> dict:
     recording.json holds ``method``, ``scene``, ``trace``, ``size`` [w, h], ``fovy_deg``, ``frames`` (per recorded
     display frame: ``index``, ``t`` scene time, true ``position``/``quat``, ``image`` path relative to the
     directory, ``frame_id`` of the newest applied server frame or -1, and optional ``age_ms``,
-    ``pose_error_cm``/``pose_error_deg``, ``client_ms``, and with stereo a ``stereo`` entry: ``right`` image path
+    ``pose_error_cm``/``pose_error_deg``, ``client_ms``, ``gaze_deg`` (where the viewer looked: ``flip_fovea``
+    centres on it), and with stereo a ``stereo`` entry: ``right`` image path
     of the synthesized eye, that eye's ``position``/``quat`` and the frame's ``cost_ratio``) and an optional
     ``summary`` of run-wide figures (Mbps on the socket, frame counts, ...), which is merged into the summary.
     Frames may carry the client's ``holes``/``holes_empty``/``holes_smeared`` and the summary
@@ -457,7 +455,7 @@ def evaluate_recording(directory: str | Path) -> dict:
                                    "bytes_geometry", "holes", "holes_empty", "holes_smeared", "holes_interior")
                  if k in f}
         scorer.count_coverage(extra["frame_id"] if "frame_id" in extra else 0, extra.get("holes"))
-        scorer.score(f["index"], f["t"], pose, image, extra)
+        scorer.score(f["index"], f["t"], pose, image, extra, gaze_deg=f.get("gaze_deg"))
         client_ms.append(f.get("client_ms", {}))
         eye = f.get("stereo")
         if eye is not None:

@@ -15,9 +15,9 @@ Targets (expected error in brackets):
 - ``quads``: :func:`quadcast.protocol.quads.decode_quad_frame` for a 64x36 session [ProtocolError];
 - ``depth``: :func:`quadcast.protocol.depth.decode_depth` for a 64x36 session [ProtocolError];
 - ``signalling``: WebRTC's ``POST /offer`` HTTP reader and SDP parser [ValueError];
-- ``pose_path``: PoseUpdate bodies of arbitrary doubles (NaN, inf, 1e300, subnormals, time steps of any size)
-  decoded, then fed to a server session core whose every decision must be a pose the renderer and the client
-  accept [ProtocolError at decoding; nothing after].
+- ``pose_path``: PoseUpdate bodies of arbitrary doubles, with and without a gaze (NaN, inf, 1e300, subnormals, time
+  steps of any size) decoded, then fed to a server session core whose every decision must be a pose the renderer
+  and the client accept [ProtocolError at decoding; nothing after].
 """
 from __future__ import annotations
 
@@ -162,31 +162,36 @@ def _check_signalling(data: bytes, chunk: int) -> bool:
 
 
 def _check_pose_path(data: bytes, chunk: int) -> bool:
-    """``data`` is a run of raw PoseUpdate bodies (72 bytes each); every one is decoded, and those accepted go
-    into one session core, whose decisions must all render and cross the wire."""
+    """``data`` is a run of raw PoseUpdate bodies (88 bytes each, a gaze included; with ``chunk`` a multiple of 3
+    their first 72 bytes, without one); every one is decoded, and those accepted go into one session core, whose
+    decisions must all render (their gaze a direction too) and cross the wire."""
     from quadcast.protocol.errors import ProtocolError
     from quadcast.protocol.frame import FramePayload, FrameType, Method, decode_frame_payload, encode_frame_payload
     from quadcast.protocol.messages import MessageType, decode_message_body
     from quadcast.protocol.prediction import UNCLAMPED_ACCELERATION
     from quadcast.protocol.session import ServerSession, ServerSessionConfig
+    from quadcast.protocol.pose import gaze_direction
     from quadcast.render.camera import Pose
     core = ServerSession(ServerSessionConfig(predictor=UNCLAMPED_ACCELERATION if chunk % 2 else None,
                                              idle_timeout_s=20.0))
     core.opened(0.0)
     now, accepted = 0.0, 0
-    for i in range(0, len(data) - 71, 72):
+    size = 72 if chunk % 3 == 0 else 88
+    for i in range(0, len(data) - 87, 88):
         try:
-            msg = decode_message_body(MessageType.POSE_UPDATE, data[i:i + 72])
+            msg = decode_message_body(MessageType.POSE_UPDATE, data[i:i + size])
         except ProtocolError:
             continue
         accepted += 1
         now += (chunk % 7) * 0.005
-        decision = core.pose_received(now, msg.t_client, msg.position, msg.quat)
+        decision = core.pose_received(now, msg.t_client, msg.position, msg.quat, msg.gaze)
         if decision is None:
             decision = core.handle_timer(now + 1.0)
         if decision is None:
             continue
         pose = Pose(decision.position, decision.quat)          # the renderer's own check
+        if decision.gaze_deg is not None and not np.all(np.isfinite(gaze_direction(decision.gaze_deg))):
+            raise AssertionError(f"gaze {decision.gaze_deg} has no direction")
         frame = FramePayload(Method.ATW, 1, FrameType.REFERENCE, 0, decision.display_t, pose.position, pose.quat,
                              b"", b"", True)
         decode_frame_payload(encode_frame_payload(frame))      # the client's
@@ -195,8 +200,9 @@ def _check_pose_path(data: bytes, chunk: int) -> bool:
 
 
 def _pose_bodies(draw_floats):
-    """Raw PoseUpdate bodies: seq, then 8 doubles drawn from anything (NaN, inf, huge, tiny, the bounds)."""
-    return b"".join(struct.pack("<Q8d", i, *v) for i, v in enumerate(draw_floats))
+    """Raw PoseUpdate bodies: seq, then 10 doubles (the pose's 8 and a gaze's 2) drawn from anything (NaN, inf,
+    huge, tiny, the bounds)."""
+    return b"".join(struct.pack("<Q10d", i, *v) for i, v in enumerate(draw_floats))
 
 
 TARGETS: dict[str, tuple[Callable[[], list[bytes]], Callable[[bytes, int], bool], tuple]] = {}
@@ -231,8 +237,11 @@ def _inputs(seeds: list[bytes] | None):
             return st.one_of(*[st.floats(-r, r) for r in ranges for _ in range(6 // len(ranges))], special)
         component = st.one_of(st.floats(0.05, 1.0), st.floats(-1.0, -0.05), st.floats(-1.0, 1.0),
                               st.floats(-400.0, 400.0), special)
-        near = st.tuples(field(1e10), *[field(1e5, 10.0)] * 3, *[component] * 4)
-        pose = st.one_of(near, near, near, st.tuples(*[special] * 8))
+        in_front = st.floats(-88.9, 88.9)
+        gaze = st.one_of(*[st.tuples(in_front, in_front)] * 3, st.tuples(special, special))   # mostly in range
+        near = st.tuples(st.tuples(field(1e10), *[field(1e5, 10.0)] * 3, *[component] * 4), gaze).map(
+            lambda parts: parts[0] + parts[1])
+        pose = st.one_of(near, near, near, st.tuples(*[special] * 10))
         return st.tuples(st.lists(pose, min_size=1, max_size=8).map(_pose_bodies), chunk)
     mutation = st.tuples(st.integers(0, 1 << 20), st.integers(0, 255))
 
@@ -266,7 +275,7 @@ def fuzz_target(name: str, examples: int, seed: int = 0) -> FuzzResult:
     make_seeds, check, expected = _targets()[name]
     result = FuzzResult(name)
     seeds = make_seeds() if make_seeds is not None else None
-    for data in seeds or [_pose_bodies([(0.0, 0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0)])]:   # imports, caches: untimed
+    for data in seeds or [_pose_bodies([(0.0, 0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0, 5.0, -5.0)])]:   # imports, caches: untimed
         try:
             check(data, 7)
         except Exception:  # noqa: BLE001 -- counted below, when hypothesis gives it

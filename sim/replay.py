@@ -14,8 +14,8 @@ reports each frame's arrival (time and bytes) back to the server over a path wit
 (its own random stream, so runs without a rate controller are what they were); with a rate controller
 (``ReplayConfig.rate``) the server session picks each frame's operating point from those reports, and the
 replay applies it to the method server before it encodes the frame. With a gaze trace (``ReplayConfig.gaze``)
-the server foveates around the gaze the client sent with its newest pose (an uplink latency before the frame
-starts); without one, around the view centre.
+the client sends the gaze with each pose, as a live client does (``PoseUpdate.gaze``), and the server foveates
+around the one its newest pose carried; without one, around the view centre.
 """
 from __future__ import annotations
 
@@ -34,13 +34,11 @@ from quadcast.protocol.rate import OperatingPoint, RateConfig
 from quadcast.protocol.session import (ClientSession, EncodeFrame, RequestReference, SendReport, ServerSession,
                                        ServerSessionConfig)
 from quadcast.render.camera import Pose
+from quadcast.render.gaze import GazeTrace
 from quadcast.render.traces import Trace
 from quadcast.server.method import MethodServer
-from quadcast.sim.gaze import GazeTrace
 from quadcast.sim.link import LinkModel
 from quadcast.sim.ratetrace import RateTrace
-
-POSE_MESSAGE_BYTES = len(encode_message(PoseUpdate(0, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))))
 
 
 @dataclass
@@ -141,13 +139,8 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
 
     def encode(decision: EncodeFrame | None) -> None:
         nonlocal in_flight
-        if decision is None:
-            return
-        if decision.reference:
-            server.request_reference()
-        if decision.point is not None:
-            server.apply_operating_point(decision.point)
-        in_flight = (decision.started + server_delay, decision)
+        if decision is not None:
+            in_flight = (decision.started + server_delay, decision)
 
     def finish_encode(until: float) -> None:
         """The frame in flight is done if it is ready by `until`: send it, start the next one."""
@@ -155,10 +148,7 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
         while in_flight is not None and in_flight[0] <= until:
             ready, decision = in_flight
             in_flight = None
-            if config.gaze is not None:      # the gaze the client sent with its newest pose, an uplink latency ago
-                server.set_gaze(config.gaze.direction_at(decision.started - config.latency_ms / 1e3))
-            server.set_rotation_miss(decision.rotation_miss_deg)
-            payload = server.encode(Pose(decision.position, decision.quat), decision.display_t)
+            payload = server.encode_decision(decision)
             points[payload.frame_id] = decision.point_index
             encode(server_session.frame_encoded(ready, payload, payload.self_contained, ready - decision.started))
             while (p := server_session.next_to_send()) is not None:
@@ -203,7 +193,9 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
         # Client -> server: poses at the server rate.
         while next_send <= now + 1e-9:
             p, q = trace.pose_at(t0 + next_send)
-            up.send(next_send, PoseUpdate(0, next_send, p, q), POSE_MESSAGE_BYTES)
+            gaze = None if config.gaze is None else config.gaze.angles_at(next_send)
+            pose_msg = PoseUpdate(0, next_send, p, q, gaze)
+            up.send(next_send, pose_msg, len(encode_message(pose_msg)))
             next_send += send_period
         # Server: every message that has arrived by now, in arrival order (poses and requests first on a tie).
         for d in sorted(up.poll(now) + back.poll(now), key=lambda d: (d.t_arrive, isinstance(d.message,
@@ -217,7 +209,7 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
             if isinstance(m, ReceiveReport):
                 encode(server_session.report_received(d.t_arrive, m.entries))
             else:
-                encode(server_session.pose_received(d.t_arrive, m.t_client, m.position, m.quat))
+                encode(server_session.pose_received(d.t_arrive, m.t_client, m.position, m.quat, m.gaze))
             finish_encode(d.t_arrive)
         finish_encode(now)
         timers(now)

@@ -5,9 +5,10 @@ import numpy as np
 
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload, FrameStats, FrameType, Method
+from quadcast.server.method import MethodServer
 
 
-class StubServer:
+class StubServer(MethodServer):
     """A method server without GL: every `every`-th frame (and the first, if `first_reference`) self-contained, as
     if each were a reference; its frames are `size` bytes, or as big as its operating point's measured rate at its
     frame rate (times `scale`: another size or scene than the ladder's)."""
@@ -15,13 +16,14 @@ class StubServer:
     def __init__(self, size: int = 1000, every: int = 3, scale: float = 1.0, first_reference: bool = False):
         self.frame_id, self.force, self.size, self.every, self.scale = 0, first_reference, size, every, scale
         self.rotation_misses: list = []     # what the driver told it before each frame (set_rotation_miss)
+        self.gazes: list = []               # ... and each gaze it was given (set_gaze)
 
     def apply_operating_point(self, point):
         self.size = int(point.mbps * 1e6 / 8 / min(point.fps, 30.0) * self.scale)
         return True
 
     def set_gaze(self, gaze):
-        pass
+        self.gazes.append(tuple(float(v) for v in gaze))
 
     def set_rotation_miss(self, degrees):
         self.rotation_misses.append(degrees)

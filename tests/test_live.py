@@ -10,6 +10,7 @@ import json
 import re
 import socket
 import struct
+import time
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +53,17 @@ def _finish(child: Child, timeout: float = RUN_TIMEOUT) -> int:
         child.stop()
 
 
+def _wait_in_log(child: Child, pattern: str, timeout: float = 30.0) -> re.Match:
+    """The first match of `pattern` in `child`'s log (stderr), waiting up to `timeout` s for it to be written."""
+    deadline = time.monotonic() + timeout
+    while True:
+        m = re.search(pattern, Path(child.log_path).read_text())
+        if m or time.monotonic() > deadline:
+            assert m, f"{child.name}'s log has no {pattern!r}"
+            return m
+        time.sleep(0.2)
+
+
 def _summary(out: Path) -> dict:
     return json.loads((out / "summary.json").read_text())
 
@@ -76,18 +88,29 @@ def _check_sensible(s: dict, out: Path) -> None:
 # ----------------------------------------------------------------------------------------- acceptance
 
 def test_walk_through_the_link_completes_with_sensible_figures(server, tmp_path):
+    """Also: the client sends its gaze trace with its poses (`--gaze`), the server's session takes it, and the
+    recording scores the fovea around it."""
     link = Child("link", quadcast_argv("link", "--listen", 0, "--to", f"127.0.0.1:{server.port}", "--delay", "20ms",
                                        "--jitter", "10ms"), tmp_path / "link.log")
+    gaze = tmp_path / "gaze.txt"
+    gaze.write_text("0 12 5\n5000 -12 -5\n")
     try:
         link_port = int(link.wait_for(LISTENING, START_TIMEOUT).group(2))
         out = tmp_path / "walk"
         client = _client(link_port, out, "--trace", "builtin:walk", "--duration", 5, "--record-every", 6,
-                         "--label-latency", 20, "--label-jitter", 10)
+                         "--label-latency", 20, "--label-jitter", 10, "--gaze", gaze)
         assert _finish(client) == 0, client.stderr_tail()
     finally:
         link.stop()
     s = _summary(out)
     _check_sensible(s, out)
+    frames = [f for f in json.loads((out / "recording.json").read_text())["frames"] if f["frame_id"] >= 0]
+    assert frames and all(abs(f["gaze_deg"][0] - (12 - 24 * f["t"] / 5)) < 1e-6 for f in frames)
+    # every pose the session took carried the gaze (the module's other clients send none; a pose the predictor
+    # drops, out of order or a repeat, is not counted)
+    ended = _wait_in_log(server, r"session \d+ ended: (\d+) poses \(([1-9]\d*) with a gaze\)")
+    poses, gazes = int(ended.group(1)), int(ended.group(2))
+    assert poses >= gazes >= max(30, poses - 3)
     assert s["trace"] == "builtin:walk" and s["latency_ms"] == 20 and s["jitter_ms"] == 10
     assert s["duration_s"] == pytest.approx(5.0, abs=0.5)
     assert s["reconnects"] == 0 and s["connections"] == 1 and s["frames_rejected"] == 0

@@ -40,7 +40,8 @@ welcomes = st.builds(Welcome, session_id=st.integers(0, 2**64 - 1),
                      server_hz=st.floats(0.0, 1e6, exclude_min=True))
 quats = st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda q: sum(v * v for v in q) > 1e-6)
 poses = st.builds(PoseUpdate, seq=st.integers(0, 2**64 - 1), t_client=st.floats(-1e10, 1e10),
-                  position=st.lists(st.floats(-1e5, 1e5), min_size=3, max_size=3), quat=quats)
+                  position=st.lists(st.floats(-1e5, 1e5), min_size=3, max_size=3), quat=quats,
+                  gaze=st.none() | st.tuples(st.floats(-88.9, 88.9), st.floats(-88.9, 88.9)))
 frames = st.builds(Frame, payload=st.binary(max_size=300))
 refreqs = st.builds(ReferenceRequest, reason=text)
 errors = st.builds(ErrorMessage, code=u16, text=text, retry_after_s=st.integers(0, 2**32 - 1).map(lambda ms: ms / 1e3))
@@ -121,6 +122,17 @@ def test_pose_update_from_pose_and_readonly_arrays():
         m.position[0] = 5.0
 
 
+def test_a_pose_without_a_gaze_is_the_body_it_always_was_and_one_with_it_adds_two_doubles():
+    """Clients that do not track the eyes (the browser viewer) send the old body; the gaze is a trailing field."""
+    plain = PoseUpdate(4, 1.25, [1, 2, 3], [0, 0, 0, 1])
+    looked = PoseUpdate(4, 1.25, [1, 2, 3], [0, 0, 0, 1], (10.5, -3.0))
+    assert encode_message(plain) == _raw(MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 4, 1.25, 1, 2, 3, 0, 0, 0, 1))
+    assert encode_message(looked) == _raw(MessageType.POSE_UPDATE,
+                                          struct.pack("<Qd3d4d2d", 4, 1.25, 1, 2, 3, 0, 0, 0, 1, 10.5, -3.0))
+    assert MessageDecoder().feed(encode_message(looked) + encode_message(plain)) == [looked, plain]
+    assert looked != plain and looked.gaze == (10.5, -3.0) and plain.gaze is None
+
+
 def test_busy_error_carries_retry_after_and_plain_errors_stay_as_before():
     busy = ErrorMessage(ErrorCode.BUSY, "server busy", retry_after_s=2.5)
     wire = encode_message(busy)
@@ -158,6 +170,8 @@ def test_frame_payload_poses_are_bounded_like_pose_updates(position, quat, t, ma
     (lambda: Welcome(1, float("nan")), "Welcome.server_hz"),
     (lambda: PoseUpdate(0, 0.0, [0, 0, 0], [0, 0, 0, 0]), "PoseUpdate.quat"),
     (lambda: PoseUpdate(0, 0.0, [0, 0], [0, 0, 0, 1]), "PoseUpdate.position"),
+    (lambda: PoseUpdate(0, 0.0, [0, 0, 0], [0, 0, 0, 1], (90.0, 0.0)), "PoseUpdate.gaze: .*89 degrees"),
+    (lambda: PoseUpdate(0, 0.0, [0, 0, 0], [0, 0, 0, 1], (0.0,)), "PoseUpdate.gaze: expected 2"),
     (lambda: ErrorMessage(-1, "x"), "ErrorMessage.code"),
     (lambda: ReceiveReport(((1, -5, 0.0),)), r"ReceiveReport.entries\[0\].bytes"),
     (lambda: ReceiveReport(((1, 5, float("nan")),)), r"ReceiveReport.entries\[0\].t_arrive"),
@@ -225,6 +239,15 @@ def test_unknown_type():
     (MessageType.ERROR, b"\x07\x00\x00\x00" + struct.pack("<I", 0), "retry_after_ms: 0"),
     (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, 0.0, float("nan"), 0, 0, 0, 0, 0, 1), "PoseUpdate.position"),
     (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d", 0, float("-inf"), 0, 0, 0, 0, 0, 0, 1), "PoseUpdate.t_client"),
+    # the optional gaze: whole, finite and in front of the eye
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4dd", 0, 0.0, 0, 0, 0, 0, 0, 0, 1, 5.0), "PoseUpdate: body truncated "
+     "reading gaze"),
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d2d", 0, 0.0, 0, 0, 0, 0, 0, 0, 1, 5.0, float("nan")),
+     "PoseUpdate.gaze: expected finite"),
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d2d", 0, 0.0, 0, 0, 0, 0, 0, 0, 1, 5.0, -120.0),
+     "PoseUpdate.gaze: .*89 degrees"),
+    (MessageType.POSE_UPDATE, struct.pack("<Qd3d4d2d", 0, 0.0, 0, 0, 0, 0, 0, 0, 1, 5.0, 0.0) + b"x",
+     "PoseUpdate: 1 unexpected trailing"),
     (MessageType.HELLO, struct.pack("<HIId", 1, 320, 180, 60.0) + b"\x02\x00\xff\xfe\x00\x00",
      "Hello.method: invalid utf-8"),
     (MessageType.HELLO, struct.pack("<HIId", 1, 320, 180, 60.0) + b"\x09\x00abc", "Hello: method says 9 bytes"),

@@ -10,11 +10,12 @@ from quadcast.codec.encoder import VideoSettings
 from quadcast.protocol.frame import FrameType, decode_frame_payload, encode_frame_payload
 from quadcast.protocol.quads import LayerKind, decode_quad_frame
 from quadcast.protocol.rate import OperatingPoint
+from quadcast.protocol.session import EncodeFrame
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.traces import resolve_trace
 from quadcast.server.foveation import AtlasFoveation
 from quadcast.server.quasar import QuasarServer, QuasarSettings
-from quadcast.sim.gaze import GazeTrace, GazeTraceError
+from quadcast.render.gaze import GazeTrace, GazeTraceError
 from quadcast.sim.metrics import compare
 
 W, H = 192, 108
@@ -118,16 +119,18 @@ def test_eccentricity_is_the_angle_from_the_gaze():
 
 def test_foveation_follows_the_gaze(courtyard_renderer):
     """With a gaze to the right, the right half of the view keeps more (smaller) quads than the left, and the other
-    way round; the atlas foveation moves with it."""
+    way round; the atlas foveation moves with it. The gaze comes as a session's decision carries it (the gaze the
+    client's newest pose sent), at the decision's operating point."""
     point = OperatingPoint("f", fovea_deg=5, fovea_sigma_deg=4, fovea_max_scale=32, fovea_atlas=4)
     pose, t = walk_pose(1.0), 1.0
     counts = {}
     for side, x_deg in (("right", 20.0), ("left", -20.0)):
         server = QuasarServer(courtyard_renderer, QuasarSettings(width=W, height=H))
-        server.apply_operating_point(point)
-        server.set_gaze(GazeTrace.parse(f"0 {x_deg} 0\n").direction_at(0.0))
-        assert server.encoder.foveation.gaze == server.s.visible.gaze == server.s.hidden.gaze
-        (visible,) = _layers(server.encode(pose, t), LayerKind.VISIBLE)
+        payload = server.encode_decision(EncodeFrame(pose.position, pose.quat, t, False, 0.0, point,
+                                                     gaze_deg=(x_deg, 0.0)))
+        gaze = tuple(GazeTrace.parse(f"0 {x_deg} 0\n").direction_at(0.0))
+        assert server.encoder.foveation.gaze == server.s.visible.gaze == server.s.hidden.gaze == pytest.approx(gaze)
+        (visible,) = _layers(payload, LayerKind.VISIBLE)
         x = visible.quads.x.astype(int) + (1 << visible.quads.size_log2.astype(int)) // 2
         counts[side] = (int((x >= W // 2).sum()), int((x < W // 2).sum()))
     assert counts["right"][0] > counts["left"][0] and counts["left"][1] > counts["right"][1]

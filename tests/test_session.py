@@ -18,6 +18,7 @@ from quadcast.protocol.messages import Bye, Frame, Hello, PoseUpdate, ReceiveRep
 from quadcast.protocol.rate import Ladder, OperatingPoint, RateConfig
 from quadcast.protocol.session import (ClientSession, EncodeFrame, FrameQueue, RequestReference, ServerSession,
                                        ServerSessionConfig)
+from quadcast.render.gaze import GazeTrace
 from stubs import StubClient, StubServer
 
 Q0 = np.array([0.0, 0.0, 0.0, 1.0])
@@ -140,6 +141,25 @@ def test_server_measures_how_far_the_head_strayed_from_its_predictions():
     assert decisions[-1].rotation_miss_deg is not None and decisions[-1].rotation_miss_deg > 0
 
 
+def test_server_decisions_carry_the_gaze_of_the_newest_pose_taken():
+    """A frame centres on the gaze its newest pose carried; a pose the predictor drops (out of order) does not move
+    it, a pose without one says no gaze, and a gaze out of bounds is refused, naming it."""
+    s = ServerSession(ServerSessionConfig(clock_offset_s=0.0))
+    q = [0.0, 0.0, 0.0, 1.0]
+    d = s.pose_received(0.0, 0.0, [0, 0, 0], q, (10.0, -5.0))
+    assert d.gaze_deg == (10.0, -5.0)
+    s.frame_encoded(0.01, "f0", True, 0.01)
+    assert s.pose_received(0.05, -1.0, [0, 0, 0], q, (-30.0, 0.0)) is None      # older than the newest: ignored
+    d = s.pose_received(0.06, 0.1, [0, 0, 0], q, (20.0, 2.0)) or s.handle_timer(1.0)
+    assert d.gaze_deg == (20.0, 2.0)
+    s.frame_encoded(1.01, "f1", False, 0.01)
+    d = s.pose_received(1.05, 0.2, [0, 0, 0], q) or s.handle_timer(2.0)
+    assert d.gaze_deg is None
+    assert s.counters.gazes == 2 and s.counters.poses_ignored == 1
+    with pytest.raises(ValueError, match="gaze: .*89 degrees"):
+        s.pose_received(1.1, 0.3, [0, 0, 0], q, (0.0, 95.0))
+
+
 def test_server_reference_requests_and_refused_frames_make_the_next_frame_self_contained():
     s = ServerSession(ServerSessionConfig(clock_offset_s=0.0, queue_frames=1))
     s.pose_received(0.0, 0.0, *_pose(0.0))
@@ -235,7 +255,7 @@ class _Recording(ServerSession):
     def _start(self, now):
         d = super()._start(now)
         self.log.append(("encode", d.started, d.position.tolist(), d.quat.tolist(), d.display_t, d.reference,
-                         d.point_index, d.rotation_miss_deg))
+                         d.point_index, d.rotation_miss_deg, d.gaze_deg))
         return d
 
     def report_received(self, now, entries):
@@ -247,9 +267,9 @@ class _Recording(ServerSession):
         self.sent.append((now, frame_id, size_bytes))
         return super().frame_sent(now, frame_id, size_bytes)
 
-    def pose_received(self, now, t_client, position, quat):
-        self.log.append(("pose", now, t_client))
-        return super().pose_received(now, t_client, position, quat)
+    def pose_received(self, now, t_client, position, quat, gaze_deg=None):
+        self.log.append(("pose", now, t_client, gaze_deg))
+        return super().pose_received(now, t_client, position, quat, gaze_deg)
 
     def reference_requested(self, now):
         self.log.append(("reference", now))
@@ -299,16 +319,10 @@ class _FakeWorker:
         self.delay, self.stub = delay, StubServer()
         self.died = asyncio.Event()
 
-    async def encode(self, position, quat, t, reference, point=None, rotation_miss_deg=None):
+    async def encode(self, decision):
         from quadcast.protocol.frame import encode_frame_payload
-        from quadcast.render.camera import Pose
         await asyncio.sleep(self.delay)
-        if reference:
-            self.stub.request_reference()
-        if point is not None:
-            self.stub.apply_operating_point(point)
-        self.stub.set_rotation_miss(rotation_miss_deg)
-        p = self.stub.encode(Pose(position, quat), t)
+        p = self.stub.encode_decision(decision)
         return encode_frame_payload(p), p.self_contained
 
     async def close(self):
@@ -332,7 +346,8 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
     cfg = replay_mod.ReplayConfig(latency_ms=30, jitter_ms=15, loss=0.0 if adapt else 0.15, seed=3,
                                   server_delay_ms=server_delay_ms, reference_timeout_s=0.2,
                                   rate_mbit=0.3 if adapt else None,
-                                  rate=RateConfig(LADDER, start_mbps=1.0) if adapt else None)
+                                  rate=RateConfig(LADDER, start_mbps=1.0) if adapt else None,
+                                  gaze=GazeTrace.parse("0 -10 5\n1000 20 -8\n2500 0 0\n"))
     replay_server = StubServer()
     replay_mod.replay(resolve_trace("builtin:walk"), replay_server, StubClient(), cfg, 180)
     replayed = sessions[0].log
@@ -376,7 +391,7 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
         for e in events:
             if e[0] == "pose":
                 p, q = trace.pose_at(trace.times[0] + e[2])
-                msg = PoseUpdate(0, e[2], p, q)
+                msg = PoseUpdate(0, e[2], p, q, e[3])
             elif e[0] == "report":
                 msg = ReceiveReport(e[2])
             else:
@@ -402,3 +417,6 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
     # both drivers hand each decision's rotation miss to the method server before it encodes
     misses = replay_server.rotation_misses
     assert any(m is not None for m in misses) and workers[0].stub.rotation_misses[:len(misses)] == misses
+    # ... and the gaze its newest pose carried: the replayed client sends its gaze trace with its poses
+    gazes = replay_server.gazes
+    assert len(set(gazes)) > 10 and workers[0].stub.gazes[:len(gazes)] == gazes

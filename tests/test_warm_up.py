@@ -10,6 +10,7 @@ import numpy as np
 
 from quadcast.methods import make_server
 from quadcast.protocol.frame import decode_frame_payload
+from quadcast.protocol.session import EncodeFrame
 from quadcast.render import quadmesh
 from quadcast.render.camera import Pose
 from quadcast.render.scene import load_scene
@@ -68,7 +69,7 @@ def test_a_spare_worker_warms_up_every_method_served_then_serves_a_session():
             await worker.call("build", spec("quasar", 96, 54))
             frames = []
             for pose, t in warm_up_path(load_scene("builtin:courtyard"), frames=2):
-                data, _ = await worker.call("encode", pose.position, pose.quat, t, False)
+                data, _ = await worker.call("encode", EncodeFrame(pose.position, pose.quat, t, False, 0.0))
                 frames.append(decode_frame_payload(data))
             return times, frames
         finally:
@@ -194,7 +195,7 @@ def test_a_warmed_up_worker_sends_what_a_cold_one_sends(ctx):
         try:
             assert (host.renderer is None) == (not warm_up)
             host.build(spec(96, 54))
-            sent.append([host.encode(pose.position, pose.quat, t, False)[0]
+            sent.append([host.encode(EncodeFrame(pose.position, pose.quat, t, False, 0.0))[0]
                          for pose, t in warm_up_path(host.scene, frames=4, dt=0.2)])
         finally:
             host.close()

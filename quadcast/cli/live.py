@@ -77,7 +77,7 @@ def cmd_server(args) -> int:
                        retry_after=args.retry_after, tls_cert=args.tls_cert, tls_key=args.tls_key,
                        allow_plaintext_token=args.allow_plaintext_token,
                        max_peer_connections=args.max_peer_connections, stun=args.stun, adapt=args.adapt,
-                       target_mbps=args.target_mbps, ladder=args.ladder)
+                       target_mbps=args.target_mbps, ladder=args.ladder, point=args.point)
 
     async def main() -> None:
         server = LiveServer(cfg, make_server, transport=args.transport)
@@ -128,7 +128,7 @@ def cmd_client(args) -> int:
                                 ("loss", args.label_loss), ("viewcell_m", args.label_viewcell)) if v is not None}
     cfg = ClientConfig(host=host, port=port, trace=args.trace, out=args.out, scene=args.scene, method=args.method,
                        width=w, height=h, fovy_deg=args.fovy, duration=args.duration, start=args.start,
-                       anchor=args.anchor,
+                       anchor=args.anchor, gaze=args.gaze,
                        record_every=args.record_every, token=args.token or "", transport=args.transport,
                        retries=args.retries, score=not args.no_score, stereo=args.stereo, labels=labels,
                        tls=args.tls, tls_ca=args.tls_ca, insecure=args.insecure, stun=args.stun,
@@ -235,6 +235,9 @@ def add_live_commands(sub) -> None:
                         "reports and picks each frame's operating point from the measured ladder (quasar)")
     p.add_argument("--target-mbps", type=float, help="the rate controller's ceiling, Mbit/s (implies --adapt)")
     p.add_argument("--ladder", help="the operating points' ladder file (default: the measured one shipped)")
+    p.add_argument("--point", help="every session's frames at this operating point (quasar): a ladder point's name "
+                                   "or key=value,... as `quadcast eval --point` takes; foveated points centre on "
+                                   "the gaze the client sends with its poses (`quadcast client --gaze`)")
     g = p.add_argument_group("limits")
     g.add_argument("--max-sessions", type=int, default=lim.max_sessions,
                    help="sessions at once; beyond, a client is told 'busy, retry after N s' (default %(default)s)")
@@ -278,6 +281,9 @@ def add_live_commands(sub) -> None:
     p.add_argument("--start", type=float, default=0.0, help="trace time to start at, seconds")
     add_trace_placement(p, start=False)
     p.add_argument("--record-every", type=int, default=1, help="record (and score) every K-th displayed frame")
+    p.add_argument("--gaze", help="a gaze trace ('t_ms x_deg y_deg' per line from the run's start, angles from the "
+                                  "view axis) to send with the poses: a foveated server point centres on it, and "
+                                  "FLIP over the central 20 degrees follows it (default: no gaze sent, the centre)")
     p.add_argument("--no-warm-up", action="store_true",
                    help="connect without first receiving and drawing made-up frames (so that llvmpipe compiles "
                         "the shaders before the first real frame needs them)")

@@ -1,9 +1,11 @@
-"""Gaze traces: where the viewer looks, relative to the head, over time (for foveation in `quadcast eval --gaze`).
+"""Gaze traces: where the viewer looks, relative to the head, over time (for foveation: `quadcast eval --gaze`, whose
+replayed client sends it with its poses, and `quadcast client --gaze`).
 
 One sample per line, whitespace-separated: ``t_ms x_deg y_deg`` -- the time since the start of the head trace it
 goes with, and the gaze's angles from the view axis in degrees (x to the right, y up). Blank lines and ``#``
 comments are skipped; times must increase. Between samples the angles are interpolated linearly; before the first
-and after the last they hold. Without a gaze trace the gaze is the view centre.
+and after the last they hold. Without a gaze trace the gaze is the view centre. Angles are bounded as the wire's are
+(:func:`quadcast.protocol.pose.check_gaze`).
 """
 from __future__ import annotations
 
@@ -11,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from quadcast.protocol.pose import MAX_GAZE_DEG, gaze_direction
 
 __all__ = ["GazeTrace", "GazeTraceError"]
 
@@ -39,8 +43,9 @@ class GazeTrace:
                 raise GazeTraceError(f"{name} line {n}: expected numbers 't_ms x_deg y_deg', got {s[:60]!r}") from None
             if len(values) != 3 or not np.all(np.isfinite(values)):
                 raise GazeTraceError(f"{name} line {n}: expected three finite numbers 't_ms x_deg y_deg', got {s[:60]!r}")
-            if not all(-89.0 < v < 89.0 for v in values[1:]):
-                raise GazeTraceError(f"{name} line {n}: gaze angles must be within +-89 degrees, got {values[1:]}")
+            if not all(-MAX_GAZE_DEG < v < MAX_GAZE_DEG for v in values[1:]):
+                raise GazeTraceError(f"{name} line {n}: gaze angles must be within +-{MAX_GAZE_DEG:g} degrees, "
+                                     f"got {values[1:]}")
             if rows and values[0] <= rows[-1][0]:
                 raise GazeTraceError(f"{name} line {n}: time {values[0]:g} ms does not follow {rows[-1][0]:g} ms")
             rows.append(values)
@@ -62,6 +67,4 @@ class GazeTrace:
 
     def direction_at(self, t: float) -> np.ndarray:
         """The unit view-space direction (camera looking down -Z) of the gaze at ``t`` s."""
-        x, y = np.tan(np.radians(self.angles_at(t)))
-        d = np.array([x, y, -1.0])
-        return d / np.linalg.norm(d)
+        return gaze_direction(self.angles_at(t))
