@@ -47,7 +47,6 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-
 from quadcast.protocol.admission import Admission, Refusal, ServerLimits, Ticket
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import encode_frame_payload, peek_frame_id
