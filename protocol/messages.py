@@ -34,8 +34,8 @@ Typical session: client sends ``Hello``; server answers ``Welcome`` (or ``ErrorM
 client streams ``PoseUpdate`` s and the server ``Frame`` s; a client that lost its reference state sends
 ``ReferenceRequest``; either side ends with ``Bye``. A client may report when each frame arrived and how big it was
 (``ReceiveReport``, on the clock its poses carry): the server's rate controller estimates the link from them
-(:mod:`quadcast.protocol.rate`); a server may ignore them and a client need not send them (the browser viewer
-does not).
+(:mod:`quadcast.protocol.rate`); a server may ignore them and a client need not send them (the Python client and
+the browser viewer do).
 
 Example::
 

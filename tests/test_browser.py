@@ -7,6 +7,7 @@ Sizes are 320x180; the figures of a software renderer on a shared machine are no
 from __future__ import annotations
 
 import base64
+import re
 import time
 
 import numpy as np
@@ -132,3 +133,31 @@ def test_page_without_the_token_is_refused_and_the_token_is_never_logged(server,
     assert not problems, problems
     log = server.log_path.read_text()
     assert "websocket" in log and TOKEN not in log and TOKEN not in "\n".join(server.lines)
+
+
+def test_page_reports_arrivals_and_an_adaptive_server_takes_them(browser, tmp_path):
+    """The page tells the server when each frame arrived (ReceiveReport, as the Python client does), so a server
+    with `--adapt` times the link with a browser's reports too: every frame the page received was reported."""
+    srv = Child("server", quadcast_argv("server", "--port", 0, "--adapt", "--spare-workers", 0, "-v"),
+                tmp_path / "server.log")
+    try:
+        port = int(srv.wait_for(LISTENING, 120).group(2))
+        page, problems = open_page(browser, page_url(port, SIZE, "builtin:walk"))
+        try:
+            page.wait_for_function("window.quadcast && window.quadcast.stats.framesReceived >= 10", timeout=90_000)
+            stats = page.evaluate(STATS)
+        finally:
+            page.close()
+        ended = None
+        for _ in range(150):        # the session ends when the server sees the page's socket close
+            ended = re.search(rf"session {stats['sessionId']} ended: .* (\d+) receive reports", srv.log_path.read_text())
+            if ended:
+                break
+            time.sleep(0.2)
+    finally:
+        srv.stop()
+    assert not problems, problems
+    assert ended, "the page's session did not end in the server's log"
+    # the first report is the empty one the page sends on connecting; one per frame after it
+    assert int(ended.group(1)) >= stats["framesReceived"] + 1
+    assert re.search(rf"session {stats['sessionId']}: operating point \S+ \(capacity", srv.log_path.read_text())

@@ -40,11 +40,11 @@ class _InstantWorker:
     async def start(self, timeout: float) -> int:
         return 0
 
-    async def encode(self, position, quat, t, reference, point=None, rotation_miss_deg=None):
-        pose = Pose(position, quat)                  # raises for what a renderer cannot use
+    async def encode(self, decision):
+        pose = Pose(decision.position, decision.quat)    # raises for what a renderer cannot use
         self.frame_id += 1
-        payload = FramePayload(Method.ATW, self.frame_id, FrameType.REFERENCE, 0, t, pose.position, pose.quat,
-                               b"\x00\x00\x00\x01", b"", True)
+        payload = FramePayload(Method.ATW, self.frame_id, FrameType.REFERENCE, 0, decision.display_t, pose.position,
+                               pose.quat, b"\x00\x00\x00\x01", b"", True)
         return encode_frame_payload(payload), True
 
     async def close(self) -> None:

@@ -16,9 +16,9 @@ import pytest
 from quadcast.codec.encoder import AtlasEncoder
 from quadcast.codec.nal import contains_idr
 from quadcast.protocol.errors import ProtocolError
-from quadcast.protocol.frame import FramePayload, FrameType, Method, encode_frame_payload
-from quadcast.protocol.messages import (Bye, ErrorMessage, Frame, Hello, PoseUpdate, ReferenceRequest, Welcome,
-                                        encode_message)
+from quadcast.protocol.frame import FramePayload, FrameType, Method, encode_frame_payload, peek_frame_id
+from quadcast.protocol.messages import (Bye, ErrorMessage, Frame, Hello, PoseUpdate, ReceiveReport, ReferenceRequest,
+                                        Welcome, encode_message)
 from quadcast.protocol.quads import (MAX_SIZE_LOG2, OFFSETS_PER_QUAD, LayerKind, QuadFrame, QuadLayer, QuadSet,
                                     decode_quad_frame, encode_quad_frame)
 from quadcast.protocol.session import ClientSession
@@ -139,22 +139,30 @@ def test_client_session_decides_like_the_python_core(tmp_path):
             events.append(["dropped", now, int(rng.integers(1, 4)), "overflow"])
         elif r < 0.88:
             events.append(["connected", now])
+        elif r < 0.94:
+            events.append(["arrived", now, frame_id + 1, int(rng.integers(100, 200_000))])
+        elif r < 0.95:
+            events.append(["announce", now])
         else:
             events.append(["tick", now])
     py = ClientSession(1.5)
     calls = {"connected": py.connected, "received": py.frame_received, "processed": py.frame_processed,
-             "dropped": py.frames_dropped, "tick": py.tick}
+             "dropped": py.frames_dropped, "tick": py.tick, "arrived": py.frame_arrived,
+             "announce": lambda t: py.announce_reports()}
     expected = []
     for name, t, *args in events:
         result = calls[name](t, *args)
+        if hasattr(result, "entries"):          # a SendReport: the page's report is its entries
+            result = [list(e) for e in result.entries]
         expected.append(result.reason if hasattr(result, "reason") else result)
     out = run_js(tmp_path, {"op": "session", "events": events})
     assert out["out"] == expected
     c = py.counters
-    assert [out["counters"][k] for k in ("framesReceived", "framesApplied", "framesRejected", "framesSkipped",
-                                         "framesLost", "referenceRequests")] == [
-        c.frames_received, c.frames_applied, c.frames_rejected, c.frames_skipped, c.frames_lost,
+    assert [out["counters"][k] for k in ("framesArrived", "framesReceived", "framesApplied", "framesRejected",
+                                         "framesSkipped", "framesLost", "referenceRequests")] == [
+        c.frames_arrived, c.frames_received, c.frames_applied, c.frames_rejected, c.frames_skipped, c.frames_lost,
         c.reference_requests]
+    assert c.frames_arrived > 0 and any(e[0] == "announce" for e in events)
     assert c.reference_requests > 0 and c.frames_skipped > 0
 
 
@@ -163,13 +171,19 @@ def test_wire_messages_match_the_python_protocol(tmp_path):
                             "hello": {"method": "quasar", "width": 960, "height": 540, "fovyDeg": 60.0,
                                       "token": "s3cr\u00e9t"},
                             "poses": [[7, 1.25, [1.0, 1.6, -2.5], [0.0, 0.3826834, 0.0, 0.9238795]]],
-                            "reasons": ["gap", ""]})
+                            "reasons": ["gap", ""],
+                            "reports": [[], [[41, 120_345, 3.25], [42, 9_000, 3.2917]],
+                                        [[1, -5, 0.0]], [[1, 5, None]], [[0, 0, 0.0]] * 257]})
     assert base64.b64decode(out["hello"]) == encode_message(Hello(1, "quasar", 960, 540, 60.0, "s3cr\u00e9t"))
     assert base64.b64decode(out["poses"][0]) == encode_message(
         PoseUpdate(7, 1.25, [1.0, 1.6, -2.5], [0.0, 0.3826834, 0.0, 0.9238795]))
     assert [base64.b64decode(r) for r in out["reasons"]] == [encode_message(ReferenceRequest("gap")),
                                                             encode_message(ReferenceRequest(""))]
     assert base64.b64decode(out["bye"]) == encode_message(Bye())
+    assert [base64.b64decode(r["ok"]) for r in out["reports"][:2]] == [
+        encode_message(ReceiveReport(())), encode_message(ReceiveReport(((41, 120_345, 3.25), (42, 9_000, 3.2917))))]
+    assert [r["error"].split(":")[1].strip() for r in out["reports"][2:]] == [
+        "ReceiveReport.entries[0].bytes", "ReceiveReport.entries[0].t_arrive", "ReceiveReport.count"]
 
     payload = FramePayload(Method.QUASAR, 41, FrameType.RESIDUAL, 40, 3.5, np.array([1.0, 2.0, 3.0]),
                            np.array([0.0, 0.0, 0.0, 1.0]), b"\x00\x00\x00\x01\x41video", b"QDCQgeometry",
@@ -194,6 +208,9 @@ def test_wire_messages_match_the_python_protocol(tmp_path):
     assert (r["method"], r["frameType"], r["selfContained"], r["frameId"]) == (1, 0, True, 5)
     assert got[4]["ok"] == {"type": 7}
     assert all("WireError" in g.get("error", "") for g in got[5:]), got[5:]
+    peeked = run_js(tmp_path, {"op": "peek", "payloads": [b64(encode_frame_payload(payload)), b64(b"QDCF\x02\x00")]})
+    assert peeked[0]["ok"] == peek_frame_id(encode_frame_payload(payload)) == 41
+    assert "too short for a frame id" in peeked[1]["error"]
 
 
 def test_codec_string_and_idr_detection_from_our_encoder(tmp_path):

@@ -39,17 +39,21 @@ const ops = {
       if (name === "received") return s.frameReceived(now, ...args);
       if (name === "processed") return s.frameProcessed(now, ...args);
       if (name === "dropped") return s.framesDropped(now, ...args) ?? null;
+      if (name === "arrived") return s.frameArrived(now, ...args);
+      if (name === "announce") return s.announceReports();
       return s.tick(now);
     });
     return { out, counters: s.counters };
   },
   video: ({ units }) => units.map((u) => ({ idr: isIdr(bytes(u)), codec: codecString(bytes(u)) })),
-  encode: ({ hello, poses, reasons }) => ({
+  encode: ({ hello, poses, reasons, reports = [] }) => ({
     hello: b64(wire.encodeHello(hello)),
     poses: poses.map(([seq, t, p, q]) => b64(wire.encodePoseUpdate(seq, t, p, q))),
     reasons: reasons.map((r) => b64(wire.encodeReferenceRequest(r))),
     bye: b64(wire.encodeBye()),
+    reports: reports.map((entries) => attempt(() => b64(wire.encodeReceiveReport(entries)))),
   }),
+  peek: ({ payloads }) => payloads.map((p) => attempt(() => wire.peekFrameId(bytes(p)))),
   decode: ({ messages }) => messages.map((m) => attempt(() => {
     const raw = bytes(m);
     const msg = wire.decodeMessage(raw.buffer.slice(raw.byteOffset, raw.byteOffset + raw.byteLength));

@@ -10,7 +10,7 @@
 // Desktop: drag to look, WASD to move (Q/E down/up, shift faster), H hides the overlay. WebXR immersive-vr
 // when navigator.xr offers it ("Enter VR"): the head pose is sent, both eyes are drawn from the mesh.
 import { ErrorCode, FATAL_CODES, FrameType, Method, MessageType, decodeFramePayload, decodeMessage, encodeBye,
-         encodeHello, encodePoseUpdate, encodeReferenceRequest } from "./wire.js";
+         encodeHello, encodePoseUpdate, encodeReceiveReport, encodeReferenceRequest, peekFrameId } from "./wire.js";
 import { LayerKind, decodeQuadBlob, layerCamera } from "./quads.js";
 import { QuadCache } from "./cache.js";
 import { ClientSession } from "./session.js";
@@ -203,6 +203,7 @@ function onMessage(buffer) {
     stats.status = "streaming";
     stats.error = null;
     session.connected(now);
+    send(encodeReceiveReport(session.announceReports()));    // the server's rate controller may time the link
     video.reset();
     pending.clear();
     lastPoseSent = -1;
@@ -212,6 +213,9 @@ function onMessage(buffer) {
     fail(`server error ${msg.code}: ${msg.text}`);
   } else if (msg.type === MessageType.FRAME) {
     byteWindow.push([now, buffer.byteLength]);
+    let frameId = null;
+    try { frameId = peekFrameId(msg.payload); } catch (e) { /* no frame id: onFrame rejects the payload */ }
+    if (frameId !== null) send(encodeReceiveReport(session.frameArrived(now, frameId, msg.payload.byteLength)));
     onFrame(now, msg.payload);
   } else if (msg.type === MessageType.BYE) {
     ws && ws.close();

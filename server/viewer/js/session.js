@@ -6,13 +6,25 @@
 export class ClientSession {
   constructor(referenceTimeout = 1.5) {
     this.referenceTimeout = referenceTimeout;
-    this.counters = { framesReceived: 0, framesApplied: 0, framesRejected: 0, framesSkipped: 0, framesLost: 0,
-                      referenceRequests: 0, rejections: [] };
+    this.counters = { framesArrived: 0, framesReceived: 0, framesApplied: 0, framesRejected: 0, framesSkipped: 0,
+                      framesLost: 0, referenceRequests: 0, rejections: [] };
     this.awaitingSelfContained = true;
     this.needsReference = false;
     this.lastFrameId = null;
     this._lastRequest = null;
     this._evidence = "";
+  }
+
+  // A frame's last byte arrived (before it is decoded or applied): the report to send the server at once, as
+  // [[frameId, bytes, now]] (a ReceiveReport's entries; its rate controller times the link with them).
+  frameArrived(now, frameId, sizeBytes) {
+    this.counters.framesArrived++;
+    return [[frameId, sizeBytes, now]];
+  }
+
+  // What the page sends right after it connects: an empty report ("this client reports arrivals").
+  announceReports() {
+    return [];
   }
 
   connected(now) {

@@ -3,7 +3,9 @@
 // (u32 length, u8 type, body). Pure functions: no DOM, so node can test them against the Python side.
 
 export const PROTOCOL_VERSION = 1;
-export const MessageType = { HELLO: 1, WELCOME: 2, POSE_UPDATE: 3, FRAME: 4, REFERENCE_REQUEST: 5, ERROR: 6, BYE: 7 };
+export const MessageType = { HELLO: 1, WELCOME: 2, POSE_UPDATE: 3, FRAME: 4, REFERENCE_REQUEST: 5, ERROR: 6, BYE: 7,
+                             RECEIVE_REPORT: 8 };
+export const MAX_REPORT_ENTRIES = 256;   // protocol/messages.py's bound on a ReceiveReport
 export const ErrorCode = { PROTOCOL: 1, UNSUPPORTED_VERSION: 2, UNKNOWN_METHOD: 3, BAD_REQUEST: 4, UNAUTHORIZED: 5,
                            INTERNAL: 6 };
 export const FATAL_CODES = [ErrorCode.UNSUPPORTED_VERSION, ErrorCode.UNKNOWN_METHOD, ErrorCode.BAD_REQUEST,
@@ -77,6 +79,30 @@ export function encodeBye() {
   return message(MessageType.BYE, 0, () => {});
 }
 
+// ReceiveReport: when each frame arrived and how big it was, [[frameId, bytes, tArrive], ...] (tArrive on the clock
+// the page's poses carry), for the server's rate controller; [] says "this client reports arrivals".
+export function encodeReceiveReport(entries) {
+  if (entries.length > MAX_REPORT_ENTRIES) {
+    throw new WireError(`ReceiveReport.count: ${entries.length} entries, at most ${MAX_REPORT_ENTRIES}`);
+  }
+  entries.forEach(([frameId, bytes, tArrive], i) => {
+    for (const [name, v] of [["frame_id", frameId], ["bytes", bytes]]) {
+      if (!(Number.isInteger(v) && v >= 0 && v <= 0xffffffff)) {
+        throw new WireError(`ReceiveReport.entries[${i}].${name}: expected an integer in [0, 2^32), got ${v}`);
+      }
+    }
+    finite(`ReceiveReport.entries[${i}].t_arrive`, [tArrive]);
+  });
+  return message(MessageType.RECEIVE_REPORT, 2 + 16 * entries.length, (view, bytes, o) => {
+    view.setUint16(o, entries.length, true);
+    entries.forEach(([frameId, size, tArrive], i) => {
+      view.setUint32(o + 2 + 16 * i, frameId, true);
+      view.setUint32(o + 6 + 16 * i, size, true);
+      view.setFloat64(o + 10 + 16 * i, tArrive, true);
+    });
+  });
+}
+
 function readString(view, pos, what) {
   if (pos + 2 > view.byteLength) throw new WireError(`${what}: body truncated reading its length`);
   const n = view.getUint16(pos, true);
@@ -127,6 +153,13 @@ export function decodeMessage(buffer) {
 export const FRAME_MAGIC = "QDCF";
 export const FRAME_VERSION = 2;
 export const FRAME_HEADER_BYTES = 88;
+
+// The frame id in a frame payload's fixed header, before the payload is checked (protocol/frame.py's
+// peek_frame_id): what the page reports the moment a frame arrives.
+export function peekFrameId(bytes) {
+  if (bytes.byteLength < 12) throw new WireError(`frame payload: ${bytes.byteLength} bytes, too short for a frame id`);
+  return new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength).getUint32(8, true);
+}
 
 export function decodeFramePayload(bytes) {
   if (bytes.byteLength < FRAME_HEADER_BYTES) {
