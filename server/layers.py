@@ -325,6 +325,10 @@ class AtlasComposer:
         self.fbo = ctx.framebuffer([self.texture])
         self.prog = program(ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "atlas.frag.glsl")
         self.vao = ctx.vertex_array(self.prog, [])
+        self.fovea_prog = program(ctx, RENDER_DIR / "fullscreen.vert.glsl", HERE / "atlas_fovea.frag.glsl")
+        self.fovea_vao = ctx.vertex_array(self.fovea_prog, [])
+        # one per rect, not per size: no view's texture is rewritten while a queued draw of another may sample it
+        self._fovea_views: dict[tuple[int, int, int, int], tuple[moderngl.Texture, moderngl.Framebuffer]] = {}
         self._copy = can_copy_textures()    # False: every layer is drawn (the pass the copy stands for)
 
     def clear(self) -> None:
@@ -340,14 +344,45 @@ class AtlasComposer:
         if self._copy and color.size == (w, h) and (color.components, color.dtype) == (4, "f1"):
             copy_texture(self.ctx, color, self.texture, at=(x, self.layout.height - y - h))
             return
-        self.fbo.use()
-        self.fbo.viewport = (x, self.layout.height - y - h, w, h)  # rects are top-left based; GL is bottom-left
+        # rects are top-left based; GL is bottom-left
+        self._draw_scaled(color, self.fbo, (x, self.layout.height - y - h, w, h))
+
+    def _draw_scaled(self, color: moderngl.Texture, fbo: moderngl.Framebuffer,
+                     viewport: tuple[int, int, int, int]) -> None:
+        fbo.use()
+        fbo.viewport = viewport
         self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)
         color.filter = (moderngl.LINEAR, moderngl.LINEAR)
         color.use(0)
         set_uniforms(self.prog, u_layer=0)
         self.vao.render(moderngl.TRIANGLES, vertices=3)
         color.filter = (moderngl.NEAREST, moderngl.NEAREST)
+
+    def draw_foveated(self, color: moderngl.Texture, rect: tuple[int, int, int, int], levels: int,
+                      uniforms: dict) -> None:
+        """`color` into `rect` as :meth:`draw` puts it there, coarsened away from the gaze
+        (server/atlas_fovea.frag.glsl): through a rect-sized texture whose `levels` mip levels are its copies at 1/2,
+        1/4, ... of its size; `uniforms` say where the gaze is and how coarse each eccentricity may be
+        (:meth:`quadcast.server.foveation.AtlasFoveation.uniforms`)."""
+        x, y, w, h = rect
+        view = self._fovea_views.get(tuple(rect))
+        if view is None:
+            tex = self.ctx.texture((w, h), 4)
+            tex.repeat_x = tex.repeat_y = False     # clamped to the view's own edge: no neighbour's colour
+            view = self._fovea_views[tuple(rect)] = (tex, self.ctx.framebuffer([tex]))
+        tex, fbo = view
+        if self._copy and color.size == (w, h) and (color.components, color.dtype) == (4, "f1"):
+            copy_texture(self.ctx, color, tex)
+        else:
+            self._draw_scaled(color, fbo, (0, 0, w, h))
+        tex.build_mipmaps(0, max(1, int(levels)))
+        tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        self.fbo.use()
+        self.fbo.viewport = (x, self.layout.height - y - h, w, h)
+        self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)
+        tex.use(0)
+        set_uniforms(self.fovea_prog, u_view=0, **uniforms)
+        self.fovea_vao.render(moderngl.TRIANGLES, vertices=3)
 
     def read(self) -> np.ndarray:
         """The atlas as (H, W, 4) RGBA, top row first: what the encoders take, without the 12 ms (at 1920x938)

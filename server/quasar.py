@@ -159,6 +159,8 @@ class QuasarServer(MethodServer):
         self.reference_gbuffer = GBuffer(self.ctx, s.width, s.height)
         self.atlas = AtlasComposer(self.ctx, self.layout)
         self.encoder = AtlasEncoder(self.layout.width, self.layout.height, s.video)
+        # at a foveated operating point, the atlas's views coarsened away from the gaze as they are composed
+        self.atlas_foveation = None
         # The atlas is coded by x264 on a thread of its own while the quad passes run (it releases the GIL, and
         # llvmpipe leaves cores idle between dispatches); False: coded in turn, after the quads. The same bytes.
         self.code_video_beside_quads = True
@@ -219,7 +221,7 @@ class QuasarServer(MethodServer):
         the atlas size. Quad thresholds, view cell, hidden layers and reference interval take effect with the next
         frame (each frame's quads stand on their own); a new CRF restarts the H.264 stream, so the next frame is a
         reference frame (an IDR); atlas foveation needs nothing from the stream."""
-        from quadcast.server.foveation import AtlasFoveation, FoveatedEncoder
+        from quadcast.server.foveation import AtlasFoveation
         if self.point is not None and self.point.same_settings(point):
             self.point = point
             return True
@@ -242,8 +244,7 @@ class QuasarServer(MethodServer):
             self.encoder.close()
             self.encoder = AtlasEncoder(self.layout.width, self.layout.height, video)
             self._force_reference = True
-        elif isinstance(self.encoder, FoveatedEncoder):
-            self.encoder = self.encoder.encoder
+        self.atlas_foveation = None
         if point.foveated and point.fovea_atlas > 1:
             from quadcast.server.layers import resized
             main = self.camera_for(Pose([0, 0, 0]))
@@ -253,19 +254,18 @@ class QuasarServer(MethodServer):
             views += [(rect, resized(main, *rect[2:])) for rect in L.hidden]
             foveation = AtlasFoveation(views, point, self.s.visible.gaze)
             if foveation.active:
-                self.encoder = FoveatedEncoder(self.encoder, foveation)
+                self.atlas_foveation = foveation
         self.point = point
         return True
 
     def set_gaze(self, gaze) -> None:
         """The viewer's gaze, a view-space direction, for the next frames: foveation centres on it."""
-        from quadcast.server.foveation import FoveatedEncoder
         g = tuple(float(v) for v in gaze)
         if g == self.s.visible.gaze:
             return
         self.s = replace(self.s, visible=replace(self.s.visible, gaze=g), hidden=replace(self.s.hidden, gaze=g))
-        if isinstance(self.encoder, FoveatedEncoder):
-            self.encoder.foveation = self.encoder.foveation.with_gaze(g)
+        if self.atlas_foveation is not None:
+            self.atlas_foveation = self.atlas_foveation.with_gaze(g)
 
     def _needs_reference(self, camera: Camera) -> bool:
         ref = self.reference_camera
@@ -382,13 +382,21 @@ class QuasarServer(MethodServer):
         """Compose this frame's colour atlas, read it back and code it: on the video thread
         (`code_video_beside_quads`), else here. On a reference frame the visible layer becomes the reference view."""
         L, gbs, wide_gb, is_reference = self.layout, views.gbs, views.wide_gb, views.is_reference
+        fovea = self.atlas_foveation
+
+        def draw(color, rect):
+            camera = fovea.cameras.get(rect) if fovea is not None else None
+            if camera is None:
+                self.atlas.draw(color, rect)
+            else:
+                self.atlas.draw_foveated(color, rect, fovea.levels, fovea.uniforms(camera))
         self.atlas.clear()
-        self.atlas.draw((gbs[0] if is_reference else self.reference_gbuffer).color, L.reference)
+        draw((gbs[0] if is_reference else self.reference_gbuffer).color, L.reference)
         if not is_reference:
-            self.atlas.draw(gbs[0].color, L.current)
+            draw(gbs[0].color, L.current)
         for gb, rect in zip(gbs[1:], L.hidden):
-            self.atlas.draw(gb.color, rect)
-        self.atlas.draw(wide_gb.color, L.wide)
+            draw(gb.color, rect)
+        draw(wide_gb.color, L.wide)
         if self.far_field is not None:                    # in every frame's atlas: the client samples it there
             for color, rect in zip(self.far_field.colors, L.far):
                 self.atlas.draw(color, rect)

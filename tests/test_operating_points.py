@@ -8,12 +8,14 @@ import pytest
 from quadcast.client.quasar import QuasarClient
 from quadcast.codec.encoder import VideoSettings
 from quadcast.protocol.frame import FrameType, decode_frame_payload, encode_frame_payload
+from quadcast.protocol.pose import gaze_direction
 from quadcast.protocol.quads import LayerKind, decode_quad_frame
 from quadcast.protocol.rate import OperatingPoint
 from quadcast.protocol.session import EncodeFrame
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.traces import resolve_trace
 from quadcast.server.foveation import AtlasFoveation
+from quadcast.server.layers import AtlasComposer, AtlasLayout
 from quadcast.server.quasar import QuasarServer, QuasarSettings
 from quadcast.render.gaze import GazeTrace, GazeTraceError
 from quadcast.sim.metrics import compare
@@ -89,21 +91,40 @@ def test_coarser_points_cost_fewer_bytes_and_foveation_keeps_the_centre(courtyar
     assert fov.flip > uni.flip
 
 
-def test_atlas_foveation_smooths_only_the_periphery():
+def test_atlas_foveation_smooths_only_the_periphery(ctx):
+    """The composer's foveated draw (server/atlas_fovea.frag.glsl): each view keeps its pixels near the gaze and is
+    smoothed far from it, the view beside it untouched by its blur; the gaze moves the untouched region."""
     rng = np.random.default_rng(0)
-    atlas = rng.integers(0, 256, (H, 2 * W, 3), np.uint8)
+    views = [rng.integers(0, 256, (H, W, 3), np.uint8) for _ in range(2)]
     cam = Camera.perspective(Pose([0, 0, 0]), W, H)
     point = OperatingPoint("f", fovea_deg=5, fovea_sigma_deg=5, fovea_max_scale=16, fovea_atlas=4)
-    fov = AtlasFoveation([((0, 0, W, H), cam), ((W, 0, W, H), cam)], point)
-    out = fov.apply(atlas)
-    assert out.shape == atlas.shape and out.dtype == np.uint8
-    ecc = cam.eccentricity_deg()
-    for x0 in (0, W):
-        view, before = out[:, x0:x0 + W].astype(float), atlas[:, x0:x0 + W].astype(float)
-        assert np.array_equal(view[ecc <= 5], before[ecc <= 5])               # the fovea untouched
-        # far out, the noise is smoothed away (4x coarser)
-        assert view[ecc > 40].std() < 0.5 * before[ecc > 40].std()
+    rects = [(0, 0, W, H), (W, 0, W, H)]
+    layout = AtlasLayout(2 * W, H, rects[0], rects[1], (), (0, 0, 0, 0))
+    textures = [ctx.texture((W, H), 4, np.ascontiguousarray(np.dstack([v, np.full((H, W), 255, np.uint8)])[::-1]))
+                for v in views]
+
+    def foveated(gaze):
+        fov = AtlasFoveation([(r, cam) for r in rects], point, gaze)
+        composer = AtlasComposer(ctx, layout)
+        composer.clear()
+        for tex, rect in zip(textures, rects):
+            composer.draw_foveated(tex, rect, fov.levels, fov.uniforms(fov.cameras[rect]))
+        return composer.read()[..., :3], fov
+
+    for gaze in ((0.0, 0.0, -1.0), tuple(gaze_direction((15.0, 5.0)))):
+        out, fov = foveated(gaze)
+        assert fov.active and set(fov.cameras) == set(rects) and fov.levels == 2
+        ecc = cam.eccentricity_deg(gaze)
+        for x0, before in zip((0, W), views):
+            view, before = out[:, x0:x0 + W].astype(float), before.astype(float)
+            assert np.abs(view - before)[ecc <= 4].max() <= 1                  # the fovea kept
+            # far out, the noise is smoothed away (4x coarser), from the view's own pixels only
+            assert view[ecc > 40].std() < 0.5 * before[ecc > 40].std()
+            assert abs(view[ecc > 40].mean() - before.mean()) < 8
     assert not AtlasFoveation([((0, 0, W, H), cam)], OperatingPoint("uniform")).active
+    # a view entirely within the fovea is left as it is
+    narrow = Camera.perspective(Pose([0, 0, 0]), W, H, 4.0)
+    assert not AtlasFoveation([((0, 0, W, H), narrow)], point).active
     with pytest.raises(ValueError, match="camera for a"):
         AtlasFoveation([((0, 0, W // 2, H), cam)], point)
 
@@ -129,7 +150,8 @@ def test_foveation_follows_the_gaze(courtyard_renderer):
         payload = server.encode_decision(EncodeFrame(pose.position, pose.quat, t, False, 0.0, point,
                                                      gaze_deg=(x_deg, 0.0)))
         gaze = tuple(GazeTrace.parse(f"0 {x_deg} 0\n").direction_at(0.0))
-        assert server.encoder.foveation.gaze == server.s.visible.gaze == server.s.hidden.gaze == pytest.approx(gaze)
+        assert server.atlas_foveation.gaze == pytest.approx(gaze)
+        assert server.s.visible.gaze == server.s.hidden.gaze == pytest.approx(gaze)
         (visible,) = _layers(payload, LayerKind.VISIBLE)
         x = visible.quads.x.astype(int) + (1 << visible.quads.size_log2.astype(int)) // 2
         counts[side] = (int((x >= W // 2).sum()), int((x < W // 2).sum()))
