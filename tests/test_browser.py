@@ -148,16 +148,11 @@ def test_page_reports_arrivals_and_an_adaptive_server_takes_them(browser, tmp_pa
             stats = page.evaluate(STATS)
         finally:
             page.close()
-        ended = None
-        for _ in range(150):        # the session ends when the server sees the page's socket close
-            ended = re.search(rf"session {stats['sessionId']} ended: .* (\d+) receive reports", srv.log_path.read_text())
-            if ended:
-                break
-            time.sleep(0.2)
+        # the session ends when the server sees the page's socket close
+        ended = srv.wait_for_log(rf"session {stats['sessionId']} ended: .* (\d+) receive reports", 30)
     finally:
         srv.stop()
     assert not problems, problems
-    assert ended, "the page's session did not end in the server's log"
     # the first report is the empty one the page sends on connecting; one per frame after it
     assert int(ended.group(1)) >= stats["framesReceived"] + 1
     assert re.search(rf"session {stats['sessionId']}: operating point \S+ \(capacity", srv.log_path.read_text())

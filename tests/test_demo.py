@@ -167,3 +167,16 @@ def test_demo_client_cores_option(capsys):
         with pytest.raises(SystemExit):
             parser.parse_args(["demo", "--client-cores", bad])
         assert why in capsys.readouterr().err
+
+
+def test_a_child_is_waited_for_in_its_log(tmp_path):
+    """`Child.wait_for_log` finds what the process writes to its log (stderr) after the call, and says which pattern
+    never came."""
+    code = "import sys, time; time.sleep(0.3); print('session 7 ended: 12 poses', file=sys.stderr, flush=True)"
+    child = Child("logger", [sys.executable, "-c", code], tmp_path / "logger.log")
+    try:
+        assert child.wait_for_log(r"session (\d+) ended", 30).group(1) == "7"
+        with pytest.raises(RuntimeError, match="logger's log has no 'never'"):
+            child.wait_for_log("never", 0.5)
+    finally:
+        child.wait(30)

@@ -10,7 +10,6 @@ import json
 import re
 import socket
 import struct
-import time
 from pathlib import Path
 
 import numpy as np
@@ -51,17 +50,6 @@ def _finish(child: Child, timeout: float = RUN_TIMEOUT) -> int:
         return child.wait(timeout)
     finally:
         child.stop()
-
-
-def _wait_in_log(child: Child, pattern: str, timeout: float = 30.0) -> re.Match:
-    """The first match of `pattern` in `child`'s log (stderr), waiting up to `timeout` s for it to be written."""
-    deadline = time.monotonic() + timeout
-    while True:
-        m = re.search(pattern, Path(child.log_path).read_text())
-        if m or time.monotonic() > deadline:
-            assert m, f"{child.name}'s log has no {pattern!r}"
-            return m
-        time.sleep(0.2)
 
 
 def _summary(out: Path) -> dict:
@@ -108,7 +96,7 @@ def test_walk_through_the_link_completes_with_sensible_figures(server, tmp_path)
     assert frames and all(abs(f["gaze_deg"][0] - (12 - 24 * f["t"] / 5)) < 1e-6 for f in frames)
     # every pose the session took carried the gaze (the module's other clients send none; a pose the predictor
     # drops, out of order or a repeat, is not counted)
-    ended = _wait_in_log(server, r"session \d+ ended: (\d+) poses \(([1-9]\d*) with a gaze\)")
+    ended = server.wait_for_log(r"session \d+ ended: (\d+) poses \(([1-9]\d*) with a gaze\)", 30)
     poses, gazes = int(ended.group(1)), int(ended.group(2))
     assert poses >= gazes >= max(30, poses - 3)
     assert s["trace"] == "builtin:walk" and s["latency_ms"] == 20 and s["jitter_ms"] == 10

@@ -96,6 +96,21 @@ class Child:
             return "(stderr not kept)"
         return "\n".join(Path(self.log_path).read_text(errors="replace").splitlines()[-n:])
 
+    def wait_for_log(self, pattern: str | re.Pattern, timeout: float) -> re.Match:
+        """The first match of ``pattern`` in the process's log (its stderr, ``log``), waiting up to ``timeout`` s for
+        it to be written (a server logs a session's end after its client has gone); RuntimeError if it is not."""
+        if self.log_path is None:
+            raise RuntimeError(f"{self.name}: no log kept")
+        rx = re.compile(pattern) if isinstance(pattern, str) else pattern
+        deadline = time.monotonic() + timeout
+        while True:
+            m = rx.search(Path(self.log_path).read_text(errors="replace"))
+            if m:
+                return m
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{self.name}'s log has no {rx.pattern!r} after {timeout:g} s")
+            time.sleep(0.2)
+
     def wait_for(self, pattern: str | re.Pattern, timeout: float) -> re.Match:
         """The first stdout line matching ``pattern`` (waits up to ``timeout`` s); RuntimeError if the process
         exits first or the time runs out."""
