@@ -162,7 +162,7 @@ class _BaselineClient(MethodClient):
         try:
             w, h = probe._frame_size()
             with AtlasEncoder(w, h) as encoder:
-                video = encoder.encode(np.full((h, w, 3), 128, np.uint8), keyframe=True).data
+                video = encoder.encode(YuvPicture.grey(w, h), keyframe=True).data
             pose = Pose(np.zeros(3))
             probe.receive(FramePayload(self.method, 0, FrameType.REFERENCE, 0, 0.0, pose.position, pose.quat, video,
                                        probe._geometry(w, h), self_contained=True))

@@ -55,7 +55,7 @@ def warm_up_frames(method: Method, width: int, height: int) -> list[tuple[FrameP
               (FrameType.RESIDUAL, [layer(LayerKind.UPDATED, wall(width // 4, width // 2, height // 4, height // 2),
                                           reference),
                                     layer(LayerKind.REVEALED, wall(0, width // 8, 0, height, depth=4.0), current)])]
-    grey = YuvPicture(np.full((height, 2 * width), 128, np.uint8), *[np.full((height // 2, width), 128, np.uint8)] * 2)
+    grey = YuvPicture.grey(2 * width, height)
     out = []
     with AtlasEncoder(2 * width, height) as encoder:
         for frame_id, (frame_type, layers) in enumerate(frames):

@@ -47,6 +47,13 @@ class YuvPicture:
         return self.y.shape[0]
 
     @classmethod
+    def grey(cls, width: int, height: int) -> YuvPicture:
+        """A uniform mid-grey picture (every plane 128): what the clients' warm-ups code as made-up frames."""
+        chroma = ((height + 1) // 2, (width + 1) // 2)
+        return cls(np.full((height, width), 128, np.uint8), np.full(chroma, 128, np.uint8),
+                   np.full(chroma, 128, np.uint8))
+
+    @classmethod
     def from_frame(cls, frame: av.VideoFrame) -> YuvPicture:
         """The planes of a yuv420p PyAV picture (copied)."""
         if frame.format.name != "yuv420p":

@@ -392,3 +392,19 @@ def test_closed_encoder_and_decoder_refuse_work(clip_crf18):
         assert decoder.decode(encoded[0].data) is not None
     with pytest.raises(RuntimeError, match="closed"):
         decoder.decode(encoded[0].data)
+
+
+def test_a_grey_picture_codes_and_decodes_as_grey():
+    """`YuvPicture.grey` (the clients' warm-up frames): every plane 128, chroma rounded up for odd sizes, and x264
+    codes it to a picture that decodes as mid-grey."""
+    odd = YuvPicture.grey(5, 3)
+    assert (odd.y.shape, odd.u.shape, odd.v.shape) == ((3, 5), (2, 3), (2, 3))
+    assert all((plane == 128).all() for plane in (odd.y, odd.u, odd.v))
+    with AtlasEncoder(64, 36) as encoder:
+        data = encoder.encode(YuvPicture.grey(64, 36), keyframe=True).data
+    decoder = AtlasDecoder()
+    try:
+        rgb = decoder.decode(data)
+    finally:
+        decoder.close()
+    assert rgb.shape == (36, 64, 3) and np.abs(rgb.astype(int) - 130).max() <= 4
