@@ -131,12 +131,9 @@ class _Scorer:
         camera = Camera.perspective(pose, self.width, self.height, self.fovy)
         gt = self.renderer.render_color(camera, t)
         s = compare(gt, image)
-        if gaze_deg is not None:
-            fovea = self._view.eccentricity_deg(gaze_direction(gaze_deg)) <= FOVEA_RADIUS_DEG
-        elif self.gaze is not None:
-            fovea = self._view.eccentricity_deg(self.gaze.direction_at(t)) <= FOVEA_RADIUS_DEG
-        else:
-            fovea = self.fovea
+        gaze = gaze_direction(gaze_deg) if gaze_deg is not None else \
+            self.gaze.direction_at(t) if self.gaze is not None else None
+        fovea = self.fovea if gaze is None else self._view.eccentricity_deg(gaze) <= FOVEA_RADIUS_DEG
         rec = {"frame": index, "t": t, "flip": s.flip, "flip_fovea": float(np.mean(s.flip_map[fovea])),
                "ssim": s.ssim, "psnr": s.psnr, **extra}
         self.records.append(rec)
