@@ -210,11 +210,20 @@ class QuasarServer(MethodServer):
     def request_reference(self) -> None:
         self._force_reference = True
 
+    WARM_UP_FOVEATION = "sigma=5,max=32,atlas=4"
+    """The foveated point a warm-up's last frame is made at again (its CRF the settings'), so that the atlas's
+    foveated pass (server/atlas_fovea.frag.glsl, sampling mip levels) is compiled before a session's first foveated
+    frame needs it: at 480x270 with Mesa's shader cache empty that frame took 198-219 ms without it and 108-131 with
+    it, the next five 67-127 either way (docs/speed.md, stop 58)."""
+
     def warm_up(self, frames: list[tuple[Pose, float]]) -> None:
         # no layer of a warm-up's small frames reaches QuadMesh's run threshold: find runs in every layer, so that
         # their passes are compiled too
         self.mesh.min_run_quads = 0
         super().warm_up(frames)
+        if frames:
+            self.apply_operating_point(OperatingPoint.parse(f"crf={self.s.video.crf},{self.WARM_UP_FOVEATION}"))
+            self.encode(*frames[-1])
 
     def apply_operating_point(self, point: OperatingPoint) -> bool:
         """Make the next frames at ``point`` (see :class:`quadcast.protocol.rate.OperatingPoint`). Every knob keeps

@@ -54,6 +54,28 @@ def test_warm_ups_of_the_mesh_methods_find_runs_in_their_small_layers(courtyard_
         assert merged and max(merged) < quadmesh.MIN_RUN_QUADS, type(server).__name__
 
 
+def test_a_quasar_warm_up_also_draws_a_foveated_atlas_at_its_own_crf(courtyard_renderer, monkeypatch):
+    """A session whose point foveates the atlas (`--point ...,atlas=N`, the ladder's fov* points) would otherwise
+    compile server/atlas_fovea.frag.glsl on its first frame: the warm-up makes its last frame again at a foveated
+    point, without restarting the video stream (the same CRF)."""
+    from quadcast.server import layers
+    drawn = []
+    original = layers.AtlasComposer.draw_foveated
+    monkeypatch.setattr(layers.AtlasComposer, "draw_foveated",
+                        lambda self, color, rect, levels, uniforms: (drawn.append(tuple(rect)),
+                                                                     original(self, color, rect, levels, uniforms))[1])
+    w, h = WARM_UP_SIZE
+    server = QuasarServer(courtyard_renderer, QuasarSettings(width=w, height=h))
+    encoder = server.encoder
+    try:
+        server.warm_up(warm_up_path(courtyard_renderer.scene))
+        assert drawn, "no view of the warm-up's atlas was foveated"
+        assert server.encoder is encoder and server.point.foveated and server.point.crf == server.s.video.crf
+        assert server.frame_id == len(warm_up_path(courtyard_renderer.scene)) + 1
+    finally:
+        server.close()
+
+
 def test_a_spare_worker_warms_up_every_method_served_then_serves_a_session():
     """The real worker process: booted with warm-up pipelines, it reports their times, then builds a session's
     pipeline of another size and encodes its frames."""
