@@ -41,7 +41,11 @@ latency, and that must stay within ``max_age_s`` (so a slow link gets fewer bits
 many bits, as long as the ladder allows). After ``hold_up_s`` of no overuse and no queue, up to the best fresh
 point that fits the ceiling (``target_mbps``) and a headroom that starts at the last measured capacity (or the
 rate of the last point that ran ``hold_up_s`` without overuse, if higher) and grows by ``probe_growth`` per
-second (hysteresis: a rate that just failed is not tried again at once). A point's rate is predicted from the bytes per frame observed at it
+second (hysteresis: a rate that just failed is not tried again at once). Above the ladder, given ``own`` (the server's
+own settings, :func:`own_point`: what it sends without adaptation, finer than any point the ladder measured): after
+``own_hold_s`` at the ladder's best point with no change and no overuse, up to them if they fit that limit (their rate,
+until seen, ``own_guess`` times the best point's); any overuse there goes back down the ladder as above. A point's rate
+is predicted from the bytes per frame observed at it
 over its reference cycle (self-contained and residual frames apart: a new CRF restarts the stream, so the first
 frame at a point is a large self-contained one) or, until it has been used, from the nearest observed point scaled
 by the ladder's measured ratio, times the frame rate. Frames are also *paced*: while the bytes sent and not yet reported exceed what the link holds in one
@@ -66,7 +70,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["OperatingPoint", "Ladder", "LadderError", "pareto_front", "ladder_points", "load_ladder", "resolve_point",
-           "RateConfig", "RateController", "RateState", "fovea_scale", "LADDER_FILE"]
+           "RateConfig", "RateController", "RateState", "fovea_scale", "own_point", "LADDER_FILE", "OWN_POINT"]
 
 LADDER_FILE = "ladder.json"
 """The measured ladder, beside this module (``quadcast bench ladder --write`` rewrites it)."""
@@ -352,6 +356,9 @@ class RateConfig:
     base_window_s: float = 10.0
     lost_after_s: float = 2.0
     ema: float = 0.3
+    own: OperatingPoint | None = None     # the server's own settings (:func:`own_point`), above the ladder
+    own_hold_s: float = 2.0               # ... entered only after this long at the ladder's best point, calm
+    own_guess: float = 1.5                # ... its rate, until seen: this times the ladder's best point's
 
     def __post_init__(self) -> None:
         if not isinstance(self.ladder, Ladder):
@@ -361,7 +368,7 @@ class RateConfig:
         if self.start is not None and not 0 <= self.start < len(self.ladder):
             raise ValueError(f"RateConfig.start: expected 0..{len(self.ladder) - 1}, got {self.start}")
         for name in ("overuse_delay_s", "overuse_trend", "hold_up_s", "queue_target_s", "base_window_s",
-                     "lost_after_s", "start_mbps"):
+                     "lost_after_s", "start_mbps", "own_hold_s", "own_guess"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"RateConfig.{name}: expected a number > 0, got {v!r}")
@@ -373,6 +380,26 @@ class RateConfig:
             raise ValueError(f"RateConfig.initial_frames: expected >= 1, got {self.initial_frames}")
         if self.trend_frames < 3:
             raise ValueError(f"RateConfig.trend_frames: expected >= 3, got {self.trend_frames}")
+        if self.own is not None and not isinstance(self.own, OperatingPoint):
+            raise ValueError(f"RateConfig.own: expected an OperatingPoint or None, got {type(self.own).__name__}")
+        if self.own is not None and any(p.name == self.own.name for p in self.ladder.points):
+            raise ValueError(f"RateConfig.own: the ladder already has a point named {self.own.name!r}")
+
+    @property
+    def points(self) -> tuple[OperatingPoint, ...]:
+        """Every point the controller may choose, by index: the ladder's, then the server's own settings if given."""
+        return self.ladder.points + ((self.own,) if self.own is not None else ())
+
+
+OWN_POINT = "own"
+"""The name of the server's own settings as an operating point (:func:`own_point`)."""
+
+
+def own_point(crf: float, viewcell_m: float, reference_every: int, fps: float = 30.0) -> OperatingPoint:
+    """The QUASAR server's own settings -- what it sends without adaptation (``crf``, the session's view cell and
+    reference interval, three hidden layers, the merge thresholds and coarse passes as configured, uniform) -- as
+    the point :class:`RateController` may go to above its ladder (``RateConfig.own``)."""
+    return OperatingPoint(name=OWN_POINT, crf=crf, viewcell_m=viewcell_m, reference_every=reference_every, fps=fps)
 
 
 @dataclass
@@ -405,8 +432,13 @@ class RateController:
     def __init__(self, config: RateConfig) -> None:
         self.config = c = config
         self.ladder = c.ladder
+        self.points = c.points    # the ladder's, then the server's own settings (``own``) if given
         n = len(self.ladder)      # how good each point is: its measured FLIP (unmeasured: the later the better)
         self._flip = [p.flip if p.flip is not None else 1.0 - i / n for i, p in enumerate(self.ladder.points)]
+        self._best = min(range(n), key=lambda i: (self._flip[i], -i))     # the ladder's best point
+        self.own_index = n if c.own is not None else None
+        if c.own is not None:
+            self._flip.append(-1.0)            # better than any ladder point: what the server sends unadapted
         self.state = RateState(index=c.start if c.start is not None else self._top_by_ladder())
         self._sent: collections.OrderedDict[int, tuple[float, int, int]] = collections.OrderedDict()
         self._samples: collections.deque[_Sample] = collections.deque()
@@ -437,7 +469,7 @@ class RateController:
 
     @property
     def point(self) -> OperatingPoint:
-        return self.ladder[self.state.index]
+        return self.points[self.state.index]
 
     def _top_by_ladder(self) -> int:
         """The first point: the best whose *measured* rate fits ``start_mbps`` and the ceiling (nothing is
@@ -448,7 +480,10 @@ class RateController:
         return min(fast or fits, key=lambda i: (self._flip[i], -i)) if fits else 0
 
     def _nominal_bytes(self, i: int) -> float:
-        """Bytes per frame of point ``i`` as the ladder measured it."""
+        """Bytes per frame of point ``i`` as the ladder measured it (the server's own settings, which it did not
+        measure: ``own_guess`` times its best point's)."""
+        if i == self.own_index:
+            return self.config.own_guess * self._nominal_bytes(self._best)
         p = self.ladder[i]
         return p.mbps * 1e6 / 8 / min(p.fps, self.ladder.fps)
 
@@ -464,7 +499,7 @@ class RateController:
             ref = res / ratio
         if res is None:
             res = ref * ratio
-        n = max(1, self.ladder[i].reference_every)
+        n = max(1, self.points[i].reference_every)
         return (ref + (n - 1) * res) / n
 
     def _residual_ratio(self) -> float:
@@ -488,13 +523,13 @@ class RateController:
 
     def predicted_mbps(self, i: int, frame_interval_s: float) -> float:
         """Point ``i``'s rate at the session's frame interval (or its own, longer one)."""
-        interval = max(frame_interval_s, 1.0 / self.ladder[i].fps, 1e-3)
+        interval = max(frame_interval_s, 1.0 / self.points[i].fps, 1e-3)
         return self.bytes_per_frame(i) * 8 / interval / 1e6
 
     def expected_age_s(self, i: int, frame_interval_s: float, capacity_mbps: float) -> float:
         """How much older than the link's latency a frame of point ``i`` is, on average, while it is shown: its
         serialization at ``capacity_mbps`` and half its frame interval."""
-        interval = max(frame_interval_s, 1.0 / self.ladder[i].fps)
+        interval = max(frame_interval_s, 1.0 / self.points[i].fps)
         return self.bytes_per_frame(i) * 8 / (capacity_mbps * 1e6) + interval / 2
 
     def _fresh(self, i: int, frame_interval_s: float, capacity_mbps: float | None) -> bool:
@@ -732,6 +767,15 @@ class RateController:
         self._holding = False                       # this frame starts: the next one held back is another
         return True
 
+    def _own_due(self, now: float) -> bool:
+        """Whether the server's own settings may be tried: at the ladder's best point, which has run
+        ``own_hold_s`` since the last change and the last overuse. They cost the most to leave when the link drops
+        (their frames are the largest in flight), so they need more calm than a step within the ladder."""
+        c = self.config
+        since = max(self._last_change, self._first_sent if self._first_sent is not None else now)
+        return (self.own_index is not None and self.state.index == self._best and now - since >= c.own_hold_s
+                and (self._last_overuse is None or now - self._last_overuse >= c.own_hold_s))
+
     def _silent(self, now: float) -> bool:
         """No report ever came although a frame was sent ``lost_after_s`` ago: the client does not report. (A
         client that does says so with an empty report when it connects, so a slow first frame is not taken for
@@ -786,6 +830,9 @@ class RateController:
                   and self.predicted_mbps(j, frame_interval_s) <= limit
                   and self._fresh(j, frame_interval_s, headroom)]
         up = min(better, key=lambda j: (self._flip[j], -j)) if better else None
+        if up is None and self._own_due(now) and self.predicted_mbps(self.own_index, frame_interval_s) <= limit \
+                and self._fresh(self.own_index, frame_interval_s, headroom):
+            up = self.own_index
         if up is not None:
             if self._headroom is not None:
                 self._probe = (st.index, now)        # a step past what the link was seen to carry

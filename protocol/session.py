@@ -403,7 +403,7 @@ class ServerSession:
         point, index = self.config.point, None
         if self.rate is not None:
             index = self._encoding_point = self.rate.choose(now, self.frame_interval_s())
-            point = self.rate.ladder[index]
+            point = self.rate.points[index]
         # a decision is always a pose the wire format accepts (the client checks the frame's pose as we check
         # the client's): extrapolation past the edge of the range stops at it
         position = np.clip(np.asarray(position, np.float64), -MAX_POSITION_M, MAX_POSITION_M)

@@ -33,10 +33,10 @@ from quadcast.render.renderer import DeferredRenderer
 from quadcast.render.scene import load_scene, scene_trace
 from quadcast.methods import make_client, make_server
 from quadcast.protocol.frame import residual_to_reference_bytes
-from quadcast.protocol.methods import MethodConfig
+from quadcast.protocol.methods import MethodConfig, method_crf
 from quadcast.protocol.prediction import DEFAULT_PREDICTOR, PredictorSettings
 from quadcast.protocol.pose import gaze_direction
-from quadcast.protocol.rate import OperatingPoint, RateConfig, load_ladder, resolve_point
+from quadcast.protocol.rate import OperatingPoint, RateConfig, load_ladder, own_point, resolve_point
 from quadcast.sim.metrics import compare
 from quadcast.sim.replay import DisplayedFrame, ReplayConfig, replay
 from quadcast.sim.report import FrameImages, format_figure, write_frames_csv, write_report_html, write_summary_json
@@ -187,7 +187,9 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     predictor = spec.predictor or DEFAULT_PREDICTOR
     rc = ReplayConfig(latency_ms=spec.latency_ms, jitter_ms=spec.jitter_ms, rate_mbit=spec.rate_mbit,
                       loss=spec.loss, predict=spec.predict, predictor=predictor, seed=spec.seed, rate_trace=rate_trace,
-                      rate=RateConfig(ladder, spec.target_mbps) if adapt else None, point=point, gaze=gaze,
+                      rate=RateConfig(ladder, spec.target_mbps, own=own_point(
+                          method_crf("quasar", spec.crf), spec.viewcell_m, spec.reference_every, ladder.fps))
+                      if adapt else None, point=point, gaze=gaze,
                       server_delay_ms=spec.server_frame_ms)
     stereo = _stereo_scorer(renderer, spec, client) if spec.stereo else None
     scorer = _Scorer(renderer, spec.width, spec.height, cfg.fovy_deg, stereo, gaze)
@@ -266,11 +268,11 @@ def rate_run_figures(spec: EvalSpec, totals, rc: ReplayConfig, point: OperatingP
     elif rc.rate_mbit is not None:
         timeline["link"] = {"t": [0.0, end], "mbps": [rc.rate_mbit, rc.rate_mbit]}
     if rc.rate is not None:
-        ladder = rc.rate.ladder
-        timeline["points"] = [p.name for p in ladder.points]
+        ladder, points = rc.rate.ladder, rc.rate.points
+        timeline["points"] = [p.name for p in points]
         st = totals.rate
         out["rate_controller"] = {"decreases": st.decreases, "increases": st.increases,
-                                  "final_point": ladder[st.index].name, "capacity_mbps": st.capacity_mbps,
+                                  "final_point": points[st.index].name, "capacity_mbps": st.capacity_mbps,
                                   "ladder": ladder.command or "(unnamed)"}
         for r in records:
             f = by_id.get(r.get("frame_id"))

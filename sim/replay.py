@@ -166,7 +166,7 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
                 st = rate.state if rate is not None else None
                 totals.sent.append(SentFrame(
                     p.frame_id, ready, d.t_arrive if d is not None else float("nan"), size, index,
-                    rate.ladder[index].name if index is not None else None,
+                    rate.points[index].name if index is not None else None,
                     st.capacity_mbps if st is not None else None,
                     st.queue_delay_s * 1e3 if st is not None and st.queue_delay_s is not None else None))
 

@@ -128,8 +128,8 @@ def test_adaptive_eval_over_a_rate_trace_records_each_frames_point(tmp_path):
     assert s["adapt"] is True and s["rate_trace"] == "builtin:step-100-15-100"
     assert s["age_bound_ms"] == pytest.approx(30 + 2000 / 30) and s["age_ms"] > 0
     tl = s["timeline"]
-    assert tl["points"] == [p.name for p in ladder.points]
-    assert len(tl["sent"]["point"]) == s["server_frames"] and all(0 <= i < len(ladder) for i in tl["sent"]["point"])
+    assert tl["points"] == [p.name for p in ladder.points] + ["own"]      # above the ladder: the server's own settings
+    assert len(tl["sent"]["point"]) == s["server_frames"] and all(0 <= i <= len(ladder) for i in tl["sent"]["point"])
     assert len(tl["display"]["age_ms"]) == 24 and tl["link"]["mbps"][0] == pytest.approx(100, rel=0.05)
     assert 0 < s["flip_fovea"] < 1
     rows = list(csv.DictReader((tmp_path / "frames.csv").open()))

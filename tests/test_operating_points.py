@@ -10,7 +10,8 @@ from quadcast.codec.encoder import VideoSettings
 from quadcast.protocol.frame import FrameType, decode_frame_payload, encode_frame_payload
 from quadcast.protocol.pose import gaze_direction
 from quadcast.protocol.quads import LayerKind, decode_quad_frame
-from quadcast.protocol.rate import OperatingPoint
+from quadcast.protocol.methods import method_crf
+from quadcast.protocol.rate import OperatingPoint, own_point
 from quadcast.protocol.session import EncodeFrame
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.traces import resolve_trace
@@ -65,6 +66,24 @@ def test_switching_points_mid_stream_stays_decodable(courtyard_renderer):
     assert kinds == [FrameType.REFERENCE] + [FrameType.RESIDUAL] * 4 + [FrameType.REFERENCE] + [FrameType.RESIDUAL] * 2
     assert hidden == [3, 3, 3, 1, 1, 0, 0, 0]
     assert server.point is new_video and server.s.video.crf == 35
+
+
+def test_the_own_point_is_what_the_server_sends_unadapted(courtyard_renderer):
+    """`own_point` (the rate controller's point above its ladder) with the session's CRF, view cell and reference
+    interval makes the same bytes as a server given no point at all; a ladder-style point does not."""
+    def frames(point):
+        server = QuasarServer(courtyard_renderer, QuasarSettings(width=W, height=H, viewcell_radius=0.25,
+                                                                 reference_every=3))
+        try:
+            if point is not None:
+                assert server.apply_operating_point(point)
+            return [(p.video, p.geometry) for p in (server.encode(walk_pose(0.1 * k), 0.1 * k) for k in range(4))]
+        finally:
+            server.close()
+    plain = frames(None)
+    assert frames(own_point(method_crf("quasar", None), 0.25, 3)) == plain
+    assert frames(OperatingPoint(crf=method_crf("quasar", None), viewcell_m=0.25, reference_every=3,
+                                 hidden_layers=1)) != plain
 
 
 def test_coarser_points_cost_fewer_bytes_and_foveation_keeps_the_centre(courtyard_renderer):

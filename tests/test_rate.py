@@ -8,8 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from quadcast.protocol.rate import (Ladder, LadderError, OperatingPoint, RateConfig, RateController, fovea_scale,
-                                    ladder_points, load_ladder, pareto_front)
+from dataclasses import replace
+
+from quadcast.protocol.rate import (OWN_POINT, Ladder, LadderError, OperatingPoint, RateConfig, RateController,
+                                    fovea_scale, ladder_points, load_ladder, own_point, pareto_front)
 from quadcast.protocol.session import SendReport, ServerSession, ServerSessionConfig, ClientSession
 from quadcast.render.traces import resolve_trace
 from quadcast.sim.ratetrace import trace_from_schedule
@@ -239,6 +241,63 @@ def test_a_step_down_and_up_is_followed_within_half_a_second(monkeypatch):
     # up: fresh frames within 0.5 s, and the controller climbs again
     assert np.mean(_ages(totals, 4.5, 6.0)) < BOUND_MS
     assert max(i for t, i in points if t > 4.5) > max(i for t, i in points if 3.0 < t < 4.0)
+
+
+def test_the_servers_own_settings_as_a_point():
+    own = own_point(18.0, 0.25, 4)
+    assert own.name == OWN_POINT and (own.crf, own.viewcell_m, own.reference_every, own.fps) == (18.0, 0.25, 4, 30.0)
+    assert own.same_settings(OperatingPoint(crf=18.0, viewcell_m=0.25, reference_every=4))   # the other knobs' defaults
+    assert (own.hidden_layers, own.quad_scale, own.foveated, own.mbps) == (3, 1.0, False, None)
+    assert RateConfig(LADDER, own=own).points == LADDER.points + (own,)
+    with pytest.raises(ValueError, match="already has a point named 'p3'"):
+        RateConfig(LADDER, own=replace(own, name="p3"))
+    with pytest.raises(ValueError, match="RateConfig.own: expected an OperatingPoint"):
+        RateConfig(LADDER, own="crf=18")
+
+
+def _own_size(i, fid):
+    """Frame bytes at 30 fps: the ladder's, and the server's own settings (index 8) 1.4 times the best point's."""
+    mbps = LADDER[i].mbps if i < len(LADDER) else 1.4 * LADDER[-1].mbps
+    return int(mbps * 1e6 / 8 / 30), False
+
+
+def test_the_servers_own_settings_come_only_after_a_calm_spell_at_the_ladders_best_point():
+    """Above the ladder: what the server sends unadapted, entered from the ladder's best point once it has run
+    `own_hold_s` without a change or an overuse (its frames are the biggest in flight when a link drops), and then
+    kept on a link that carries it. Without `own` the controller stays on the ladder."""
+    own = own_point(18.0, 0.5, 5)
+    c = _feed(_controller(start_mbps=100, own=own), 300.0, 6.0, size_of=_own_size)
+    best = c._best
+    assert c._best == len(LADDER) - 1 and c.own_index == len(LADDER) and c.points[c.own_index] is own
+    reached_best = min(t for t, i in c.history if i == best)
+    first_own = min(t for t, i in c.history if i == c.own_index)
+    assert first_own >= reached_best + c.config.own_hold_s
+    assert first_own < reached_best + c.config.own_hold_s + 0.5
+    assert all(i == c.own_index for t, i in c.history if t > first_own)       # the link carries it: kept
+    assert c.state.decreases == 0 and c.point is own
+    plain = _feed(_controller(start_mbps=100), 300.0, 6.0, size_of=_own_size)
+    assert max(i for _, i in plain.history) == len(LADDER) - 1
+    # its rate before it has been seen: own_guess times the best point's as seen
+    fresh = _feed(_controller(start_mbps=100, own=own), 300.0, 0.5, size_of=_own_size)
+    assert fresh.predicted_mbps(fresh.own_index, 1 / 30) == pytest.approx(
+        1.5 * fresh.predicted_mbps(best, 1 / 30))
+
+
+def test_a_link_that_drops_under_the_servers_own_settings_sends_the_controller_back_to_the_ladder():
+    """Through the replay: the server's own settings on a fast link, then at 5 s a drop to 40 Mbit/s (under their
+    1.5 x 64): back on a ladder point that fits within half a second, and frames fresh again."""
+    step = trace_from_schedule([(5.0, 300.0), (2.0, 40.0)], "drop")
+    own = replace(own_point(18.0, 0.5, 5), mbps=1.5 * LADDER[-1].mbps)     # the stub server's frame sizes
+    cfg = ReplayConfig(latency_ms=LATENCY_MS, jitter_ms=20.0, seed=1, rate_trace=step,
+                       rate=RateConfig(LADDER, start_mbps=100.0, own=own))
+    totals = replay(resolve_trace("builtin:walk"), StubServer(size=100_000, every=5, first_reference=True),
+                    StubClient(), cfg, 7 * 60)
+    points = [(f.t_sent, f.point_index) for f in totals.sent]
+    own_index = len(LADDER)
+    assert any(i == own_index for t, i in points if t < 5.0)
+    assert all(i < own_index and LADDER[i].mbps <= 40.0 for t, i in points if t > 5.5)
+    assert np.mean(_ages(totals, 5.5, 7.0)) < BOUND_MS
+    assert totals.sent[-1].point != OWN_POINT and any(f.point == OWN_POINT for f in totals.sent)
 
 
 _SLOW = dict(   # a server that finishes a frame every 134 ms (the point allows 30 fps), asking at every 60 Hz pose, over

@@ -397,7 +397,7 @@ def build_parser() -> argparse.ArgumentParser:
                                         "delivery opportunity, ms) or builtin:const-20|step-100-15-100|sawtooth-10-40")
     p.add_argument("--adapt", action="store_true",
                    help="the server's rate controller picks each frame's operating point from the client's receive "
-                        "reports (quasar)")
+                        "reports: the ladder's, or the server's own settings after 2 s of calm at its best (quasar)")
     p.add_argument("--target-mbps", type=float, help="the rate controller's ceiling, Mbit/s (implies --adapt)")
     p.add_argument("--point", help="a fixed operating point: a ladder point's name or key=value,... (crf, quad, "
                                    "coarse, viewcell, hidden, every, fovea, sigma, gamma, max, atlas)")

@@ -232,7 +232,8 @@ def add_live_commands(sub) -> None:
     p.add_argument("--no-predict", action="store_true", help="render the last received pose as is")
     p.add_argument("--adapt", action="store_true",
                    help="rate adaptation: each session's controller estimates the link from the client's receive "
-                        "reports and picks each frame's operating point from the measured ladder (quasar)")
+                        "reports and picks each frame's operating point from the measured ladder, or the server's own "
+                        "settings after 2 s of calm at the ladder's best point (quasar)")
     p.add_argument("--target-mbps", type=float, help="the rate controller's ceiling, Mbit/s (implies --adapt)")
     p.add_argument("--ladder", help="the operating points' ladder file (default: the measured one shipped)")
     p.add_argument("--point", help="every session's frames at this operating point (quasar): a ladder point's name "
