@@ -69,8 +69,11 @@ from pathlib import Path
 
 import numpy as np
 
+from quadcast.protocol.methods import method_crf
+
 __all__ = ["OperatingPoint", "Ladder", "LadderError", "pareto_front", "ladder_points", "load_ladder", "resolve_point",
-           "RateConfig", "RateController", "RateState", "fovea_scale", "own_point", "LADDER_FILE", "OWN_POINT"]
+           "RateConfig", "RateController", "RateState", "fovea_scale", "own_point", "session_rate", "LADDER_FILE",
+           "OWN_POINT"]
 
 LADDER_FILE = "ladder.json"
 """The measured ladder, beside this module (``quadcast bench ladder --write`` rewrites it)."""
@@ -395,11 +398,20 @@ OWN_POINT = "own"
 """The name of the server's own settings as an operating point (:func:`own_point`)."""
 
 
-def own_point(crf: float, viewcell_m: float, reference_every: int, fps: float = 30.0) -> OperatingPoint:
-    """The QUASAR server's own settings -- what it sends without adaptation (``crf``, the session's view cell and
-    reference interval, three hidden layers, the merge thresholds and coarse passes as configured, uniform) -- as
-    the point :class:`RateController` may go to above its ladder (``RateConfig.own``)."""
-    return OperatingPoint(name=OWN_POINT, crf=crf, viewcell_m=viewcell_m, reference_every=reference_every, fps=fps)
+def own_point(crf: float | None, viewcell_m: float, reference_every: int, fps: float = 30.0) -> OperatingPoint:
+    """The QUASAR server's own settings -- what it sends without adaptation (``crf``, None for quasar's default; the
+    session's view cell and reference interval; three hidden layers, the merge thresholds and coarse passes as
+    configured, uniform) -- as the point :class:`RateController` may go to above its ladder (``RateConfig.own``)."""
+    return OperatingPoint(name=OWN_POINT, crf=method_crf("quasar", crf), viewcell_m=viewcell_m,
+                          reference_every=reference_every, fps=fps)
+
+
+def session_rate(ladder: Ladder, target_mbps: float | None, crf: float | None, viewcell_m: float,
+                 reference_every: int) -> RateConfig:
+    """A session's rate controller settings, live (``quadcast server --adapt``) and replayed (``quadcast eval
+    --adapt``) alike: ``ladder`` under the ceiling ``target_mbps``, and above it the server's own settings for the
+    session's ``crf`` (None: quasar's default), view cell and reference interval."""
+    return RateConfig(ladder, target_mbps, own=own_point(crf, viewcell_m, reference_every, ladder.fps))
 
 
 @dataclass

@@ -52,8 +52,8 @@ from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import encode_frame_payload, peek_frame_id
 from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, ErrorCode, ErrorMessage, Frame, Hello, PoseUpdate,
                                         ReceiveReport, ReferenceRequest, Welcome, encode_message)
-from quadcast.protocol.methods import METHODS, MethodConfig, method_crf
-from quadcast.protocol.rate import RateConfig, load_ladder, own_point, resolve_point
+from quadcast.protocol.methods import METHODS, MethodConfig
+from quadcast.protocol.rate import load_ladder, resolve_point, session_rate
 from quadcast.protocol.session import EncodeFrame, ServerCounters, ServerSession, ServerSessionConfig
 from quadcast.render.camera import Pose
 from quadcast.render.gl import WARM_UP_SIZE
@@ -133,9 +133,8 @@ class ServerConfig:
         self.limits()                    # ValueError naming a bad limit
         ladder = load_ladder(self.ladder) if self.adapt or self.target_mbps is not None else None
         # ValueError / LadderError: bad ladder. Above it, what quasar sends without adaptation (RateConfig.own)
-        self._rate = None if ladder is None else RateConfig(
-            ladder, self.target_mbps, own=own_point(method_crf("quasar", self.crf), self.viewcell_m,
-                                                    self.reference_every, ladder.fps))
+        self._rate = None if ladder is None else session_rate(ladder, self.target_mbps, self.crf, self.viewcell_m,
+                                                              self.reference_every)
         if self.point is not None and self._rate is not None:
             raise ValueError("--point fixes the operating point; --adapt chooses it: give one of them")
         self._point = None if self.point is None else \

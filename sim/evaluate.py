@@ -33,10 +33,10 @@ from quadcast.render.renderer import DeferredRenderer
 from quadcast.render.scene import load_scene, scene_trace
 from quadcast.methods import make_client, make_server
 from quadcast.protocol.frame import residual_to_reference_bytes
-from quadcast.protocol.methods import MethodConfig, method_crf
+from quadcast.protocol.methods import MethodConfig
 from quadcast.protocol.prediction import DEFAULT_PREDICTOR, PredictorSettings
 from quadcast.protocol.pose import gaze_direction
-from quadcast.protocol.rate import OperatingPoint, RateConfig, load_ladder, own_point, resolve_point
+from quadcast.protocol.rate import OperatingPoint, load_ladder, resolve_point, session_rate
 from quadcast.sim.metrics import compare
 from quadcast.sim.replay import DisplayedFrame, ReplayConfig, replay
 from quadcast.sim.report import FrameImages, format_figure, write_frames_csv, write_report_html, write_summary_json
@@ -187,8 +187,7 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     predictor = spec.predictor or DEFAULT_PREDICTOR
     rc = ReplayConfig(latency_ms=spec.latency_ms, jitter_ms=spec.jitter_ms, rate_mbit=spec.rate_mbit,
                       loss=spec.loss, predict=spec.predict, predictor=predictor, seed=spec.seed, rate_trace=rate_trace,
-                      rate=RateConfig(ladder, spec.target_mbps, own=own_point(
-                          method_crf("quasar", spec.crf), spec.viewcell_m, spec.reference_every, ladder.fps))
+                      rate=session_rate(ladder, spec.target_mbps, spec.crf, spec.viewcell_m, spec.reference_every)
                       if adapt else None, point=point, gaze=gaze,
                       server_delay_ms=spec.server_frame_ms)
     stereo = _stereo_scorer(renderer, spec, client) if spec.stereo else None

@@ -81,7 +81,7 @@ def test_the_own_point_is_what_the_server_sends_unadapted(courtyard_renderer):
         finally:
             server.close()
     plain = frames(None)
-    assert frames(own_point(method_crf("quasar", None), 0.25, 3)) == plain
+    assert frames(own_point(None, 0.25, 3)) == plain
     assert frames(OperatingPoint(crf=method_crf("quasar", None), viewcell_m=0.25, reference_every=3,
                                  hidden_layers=1)) != plain
 
