@@ -28,7 +28,8 @@ ReceiveReport      8    count u16, then per frame: frame_id u32, bytes u32, t_ar
 A PoseUpdate is accepted only if it can be rendered (:mod:`quadcast.protocol.pose`): coordinates within
 +-1e5 m, a quaternion whose norm is in [1e-3, 1e3], a time within +-1e10 s, a gaze (where the viewer looks: its
 angles from the view axis, to the right and up) within +-89 degrees; anything else is a ProtocolError naming the
-field. A PoseUpdate without a gaze is the one a client that does not track the eyes sends (the browser viewer).
+field. A PoseUpdate without a gaze is the one a client that does not track the eyes sends (the browser viewer, unless
+its gaze follows the pointer).
 
 Typical session: client sends ``Hello``; server answers ``Welcome`` (or ``ErrorMessage`` and closes); then the
 client streams ``PoseUpdate`` s and the server ``Frame`` s; a client that lost its reference state sends

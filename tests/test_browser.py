@@ -156,3 +156,20 @@ def test_page_reports_arrivals_and_an_adaptive_server_takes_them(browser, tmp_pa
     # the first report is the empty one the page sends on connecting; one per frame after it
     assert int(ended.group(1)) >= stats["framesReceived"] + 1
     assert re.search(rf"session {stats['sessionId']}: operating point \S+ \(capacity", srv.log_path.read_text())
+
+
+def test_page_sends_the_pointer_as_the_gaze_when_asked(server, browser):
+    """With "gaze: pointer" (?gaze=pointer) the page's poses carry the pointer's direction as the viewer's gaze
+    (PoseUpdate's optional gaze, as `quadcast client --gaze` sends it); the server counts the poses that did."""
+    page, problems = open_page(browser, page_url(server.port, SIZE, "builtin:walk", token=TOKEN, gaze="pointer"))
+    try:
+        page.wait_for_function("window.quadcast && window.quadcast.stats.framesReceived >= 3", timeout=90_000)
+        assert page.evaluate("document.getElementById('gaze-pointer').checked")
+        page.mouse.move(SIZE[0] * 0.75, SIZE[1] * 0.8)        # right of and below the centre (the overlay is above)
+        page.wait_for_timeout(1000)
+        stats = page.evaluate(STATS)
+    finally:
+        page.close()
+    assert not problems, problems
+    ended = server.wait_for_log(rf"session {stats['sessionId']} ended: (\d+) poses \((\d+) with a gaze\)", 30)
+    assert 0 < int(ended.group(2)) < int(ended.group(1))      # none before the pointer moved, then every one

@@ -17,6 +17,7 @@ from quadcast.codec.encoder import AtlasEncoder
 from quadcast.codec.nal import contains_idr
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import FramePayload, FrameType, Method, encode_frame_payload, peek_frame_id
+from quadcast.protocol.pose import gaze_direction
 from quadcast.protocol.messages import (Bye, ErrorMessage, Frame, Hello, PoseUpdate, ReceiveReport, ReferenceRequest,
                                         Welcome, encode_message)
 from quadcast.protocol.quads import (MAX_SIZE_LOG2, OFFSETS_PER_QUAD, LayerKind, QuadFrame, QuadLayer, QuadSet,
@@ -170,13 +171,19 @@ def test_wire_messages_match_the_python_protocol(tmp_path):
     out = run_js(tmp_path, {"op": "encode",
                             "hello": {"method": "quasar", "width": 960, "height": 540, "fovyDeg": 60.0,
                                       "token": "s3cr\u00e9t"},
-                            "poses": [[7, 1.25, [1.0, 1.6, -2.5], [0.0, 0.3826834, 0.0, 0.9238795]]],
+                            "poses": [[7, 1.25, [1.0, 1.6, -2.5], [0.0, 0.3826834, 0.0, 0.9238795]],
+                                      [8, 1.5, [1.0, 1.6, -2.5], [0.0, 0.0, 0.0, 1.0], [12.5, -3.25]],
+                                      [9, 1.5, [0, 0, 0], [0, 0, 0, 1], [89.0, 0.0]],
+                                      [9, 1.5, [0, 0, 0], [0, 0, 0, 1], ["x", 0.0]]],
                             "reasons": ["gap", ""],
                             "reports": [[], [[41, 120_345, 3.25], [42, 9_000, 3.2917]],
                                         [[1, -5, 0.0]], [[1, 5, None]], [[0, 0, 0.0]] * 257]})
     assert base64.b64decode(out["hello"]) == encode_message(Hello(1, "quasar", 960, 540, 60.0, "s3cr\u00e9t"))
-    assert base64.b64decode(out["poses"][0]) == encode_message(
+    assert base64.b64decode(out["poses"][0]["ok"]) == encode_message(
         PoseUpdate(7, 1.25, [1.0, 1.6, -2.5], [0.0, 0.3826834, 0.0, 0.9238795]))
+    assert base64.b64decode(out["poses"][1]["ok"]) == encode_message(                 # with the viewer's gaze
+        PoseUpdate(8, 1.5, [1.0, 1.6, -2.5], [0.0, 0.0, 0.0, 1.0], (12.5, -3.25)))
+    assert [p["error"].split(":")[1].strip() for p in out["poses"][2:]] == ["PoseUpdate.gaze"] * 2
     assert [base64.b64decode(r) for r in out["reasons"]] == [encode_message(ReferenceRequest("gap")),
                                                             encode_message(ReferenceRequest(""))]
     assert base64.b64decode(out["bye"]) == encode_message(Bye())
@@ -248,8 +255,14 @@ def test_traces_and_matrices_follow_the_python_conventions(tmp_path):
 
     pose = Pose([1.0, 1.6, -2.0], [0.1, 0.7, -0.2, 0.6])
     m = run_js(tmp_path, {"op": "matrices", "position": pose.position.tolist(), "quat": pose.quat.tolist(),
-                          "fovy": 75.0, "aspect": 16 / 9, "yaw": 30.0, "pitch": -10.0})
+                          "fovy": 75.0, "aspect": 16 / 9, "yaw": 30.0, "pitch": -10.0,
+                          "pointers": [[80.0, 45.0, 180.0], [-120.0, -10.0, 180.0], [0.0, 0.0, 360.0]]})
     np.testing.assert_allclose(np.reshape(m["view"], (4, 4)).T, pose.view_matrix(), atol=1e-12)
     np.testing.assert_allclose(np.reshape(m["proj"], (4, 4)).T, Frustum.symmetric(75.0, 16 / 9).projection_matrix(),
                                atol=1e-12)
     assert abs(np.dot(m["yawPitch"], Pose.from_euler([0, 0, 0], -10.0, 30.0).quat)) == pytest.approx(1.0)
+    # the page's pointer gaze: the direction (gaze_direction) of the pixel dx right of and dy above the view's centre
+    for (dx, dy, h), g in zip([[80.0, 45.0, 180.0], [-120.0, -10.0, 180.0], [0.0, 0.0, 360.0]], m["gazes"]):
+        f = h / 2 / np.tan(np.radians(75.0) / 2)
+        ray = np.array([dx / f, dy / f, -1.0])
+        np.testing.assert_allclose(gaze_direction(g), ray / np.linalg.norm(ray), atol=1e-12)

@@ -5,7 +5,7 @@ import { decodeQuadBlob, layerCamera } from "../server/viewer/js/quads.js";
 import { QuadCache } from "../server/viewer/js/cache.js";
 import { ClientSession } from "../server/viewer/js/session.js";
 import { codecString, isIdr } from "../server/viewer/js/video.js";
-import { parseQuasarTrace, tracePoseAt, viewMatrix, projection, symmetricFrustum, quatFromYawPitch } from "../server/viewer/js/math.js";
+import { gazeAt, parseQuasarTrace, tracePoseAt, viewMatrix, projection, symmetricFrustum, quatFromYawPitch } from "../server/viewer/js/math.js";
 import * as wire from "../server/viewer/js/wire.js";
 
 const req = JSON.parse(readFileSync(process.argv[2], "utf8"));
@@ -48,7 +48,7 @@ const ops = {
   video: ({ units }) => units.map((u) => ({ idr: isIdr(bytes(u)), codec: codecString(bytes(u)) })),
   encode: ({ hello, poses, reasons, reports = [] }) => ({
     hello: b64(wire.encodeHello(hello)),
-    poses: poses.map(([seq, t, p, q]) => b64(wire.encodePoseUpdate(seq, t, p, q))),
+    poses: poses.map(([seq, t, p, q, gaze = null]) => attempt(() => b64(wire.encodePoseUpdate(seq, t, p, q, gaze)))),
     reasons: reasons.map((r) => b64(wire.encodeReferenceRequest(r))),
     bye: b64(wire.encodeBye()),
     reports: reports.map((entries) => attempt(() => b64(wire.encodeReceiveReport(entries)))),
@@ -66,7 +66,8 @@ const ops = {
     const poses = times.map((t) => tracePoseAt(builtin, t));
     return { parsed, poses };
   },
-  matrices: ({ position, quat, fovy, aspect, yaw, pitch }) => ({
+  matrices: ({ position, quat, fovy, aspect, yaw, pitch, pointers = [] }) => ({
+    gazes: pointers.map(([dx, dy, h]) => gazeAt(dx, dy, h, fovy)),
     view: Array.from(viewMatrix(position, quat)),
     proj: Array.from(projection(symmetricFrustum(fovy, aspect))),
     yawPitch: quatFromYawPitch(yaw, pitch),

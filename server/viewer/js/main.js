@@ -7,14 +7,17 @@
 // server's token (the fragment never reaches the server's logs; without it the page asks when the server
 // wants one). For tests: ?freeze=N stops applying frames after the N-th, ?keep=1 keeps the applied frames'
 // bytes (window.quadcast.appliedFrames()), window.quadcast.capture() renders and reads the canvas.
-// Desktop: drag to look, WASD to move (Q/E down/up, shift faster), H hides the overlay. WebXR immersive-vr
+// Desktop: drag to look, WASD to move (Q/E down/up, shift faster), H hides the overlay; with "gaze: pointer" ticked
+// (or ?gaze=pointer) each pose carries the pointer's direction as the viewer's gaze, which a foveated operating point
+// (quadcast server --point ...,sigma=S or --adapt) centres on. WebXR immersive-vr
 // when navigator.xr offers it ("Enter VR"): the head pose is sent, both eyes are drawn from the mesh.
 import { ErrorCode, FATAL_CODES, FrameType, Method, MessageType, decodeFramePayload, decodeMessage, encodeBye,
          encodeHello, encodePoseUpdate, encodeReceiveReport, encodeReferenceRequest, peekFrameId } from "./wire.js";
 import { LayerKind, decodeQuadBlob, layerCamera } from "./quads.js";
 import { QuadCache } from "./cache.js";
 import { ClientSession } from "./session.js";
-import { parseQuasarTrace, projection, quatFromYawPitch, rotate, symmetricFrustum, tracePoseAt, viewMatrix } from "./math.js";
+import { gazeAt, parseQuasarTrace, projection, quatFromYawPitch, rotate, symmetricFrustum, tracePoseAt,
+         viewMatrix } from "./math.js";
 import { AtlasVideo } from "./video.js";
 import { MeshRenderer } from "./renderer.js";
 
@@ -64,6 +67,7 @@ let byteWindow = [], displayWindow = [];
 let trace = null, traceStart = 0, fixedPose = null;
 const user = { position: [0, 1.6, 0], yaw: 0, pitch: 0, keys: new Set() };
 let xr = null;                       // {session, space} while in immersive VR
+let pointerGaze = null;              // [x, y] degrees: the pointer's direction, sent as the gaze ("gaze: pointer")
 
 // ------------------------------------------------------------------------------------------------ setup
 
@@ -376,7 +380,7 @@ function currentPose(now, dt) {
 function sendPose(now, pose) {
   if (!stats.connected || now - lastPoseSent < 1 / POSE_HZ - 1e-3) return;
   lastPoseSent = now;
-  send(encodePoseUpdate(poseSeq++, now, pose.position, pose.quat));
+  send(encodePoseUpdate(poseSeq++, now, pose.position, pose.quat, xr ? null : pointerGaze));
 }
 
 function drawAt(pose) {
@@ -455,7 +459,14 @@ function setupInput() {
   let drag = null;
   canvas.addEventListener("pointerdown", (e) => { drag = [e.clientX, e.clientY]; canvas.setPointerCapture(e.pointerId); });
   canvas.addEventListener("pointerup", () => { drag = null; });
+  const gazeBox = document.getElementById("gaze-pointer");
+  gazeBox.checked = params.get("gaze") === "pointer";
+  gazeBox.addEventListener("change", () => { if (!gazeBox.checked) pointerGaze = null; });
   canvas.addEventListener("pointermove", (e) => {
+    if (gazeBox.checked) {
+      const r = canvas.getBoundingClientRect();
+      pointerGaze = gazeAt(e.clientX - (r.left + r.width / 2), r.top + r.height / 2 - e.clientY, r.height, view.fovy);
+    }
     if (!drag) return;
     user.yaw -= 0.2 * (e.clientX - drag[0]);
     user.pitch = Math.max(-89, Math.min(89, user.pitch - 0.2 * (e.clientY - drag[1])));

@@ -64,6 +64,15 @@ export function mul(a, b) {
   return m;
 }
 
+// The gaze (quadcast.protocol.pose.gaze_direction's angles: degrees to the right and up from the view axis) of a point
+// `dx`, `dy` pixels right of and above the centre of a view `heightPx` high with a vertical field of view `fovyDeg`,
+// each angle capped at `maxDeg`.
+export function gazeAt(dx, dy, heightPx, fovyDeg, maxDeg = 88) {
+  const f = heightPx / 2 / Math.tan((fovyDeg * Math.PI) / 360);
+  const deg = (v) => Math.max(-maxDeg, Math.min(maxDeg, (Math.atan(v / f) * 180) / Math.PI));
+  return [deg(dx), deg(dy)];
+}
+
 // Frustum.symmetric and Frustum.projection_matrix (OpenGL clip space).
 export function symmetricFrustum(fovyDeg, aspect, near = 0.1, far = 100.0) {
   const t = near * Math.tan((fovyDeg * Math.PI) / 360);

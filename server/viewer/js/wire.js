@@ -57,13 +57,23 @@ export function encodeHello({ version = PROTOCOL_VERSION, method, width, height,
   });
 }
 
-export function encodePoseUpdate(seq, tClient, position, quat) {
+export const MAX_GAZE_DEG = 89;   // quadcast.protocol.pose.MAX_GAZE_DEG
+
+// `gaze`: where the viewer looks, [x, y] degrees to the right and up from the view axis (each within +-89), or null:
+// a pose without one (72 bytes), as the Python client sends without --gaze.
+export function encodePoseUpdate(seq, tClient, position, quat, gaze = null) {
   finite("PoseUpdate", [tClient, ...position, ...quat]);
   if (quat.reduce((a, q) => a + q * q, 0) < 1e-12) throw new WireError("PoseUpdate.quat: expected a non-zero quaternion");
-  return message(MessageType.POSE_UPDATE, 72, (view, bytes, o) => {
+  if (gaze !== null) {
+    finite("PoseUpdate.gaze", gaze);
+    if (gaze.length !== 2 || !gaze.every((g) => Math.abs(g) < MAX_GAZE_DEG)) {
+      throw new WireError(`PoseUpdate.gaze: expected two angles within +-${MAX_GAZE_DEG} degrees of the view axis, got ${gaze}`);
+    }
+  }
+  return message(MessageType.POSE_UPDATE, gaze === null ? 72 : 88, (view, bytes, o) => {
     view.setBigUint64(o, BigInt(seq), true);
     view.setFloat64(o + 8, tClient, true);
-    [...position, ...quat].forEach((v, i) => view.setFloat64(o + 16 + 8 * i, v, true));
+    [...position, ...quat, ...(gaze ?? [])].forEach((v, i) => view.setFloat64(o + 16 + 8 * i, v, true));
   });
 }
 
