@@ -469,7 +469,7 @@ class RateController:
         self._acks: collections.deque[tuple[float, int]] = collections.deque()     # (report time, bytes)
         self._probe: tuple[int, float] | None = None    # (index before, when) of the last step up past the headroom
         self._calm_index: int | None = None         # the point of the newest frame reported without queueing
-        self._episode: list | None = None          # while the link queues: [index it began at, frames measured]
+        self._episode: list | None = None          # while the link queues: [index it began at, last measurement]
         self._paced: collections.deque[float] = collections.deque()     # when frames were held back
         self._holding = False                       # the frame waiting to start was held back (counted in _paced)
 
@@ -613,7 +613,7 @@ class RateController:
         st.trend = None
         if len(recent) >= 3 and recent[-1].t_sent - recent[0].t_sent > 1e-3:
             st.trend = float(np.polyfit([s.t_sent for s in recent], [s.owd for s in recent], 1)[0])
-        capacity, pairs = self._capacity_mbps()
+        capacity, newest = self._capacity_mbps()
         threshold = self.overuse_threshold_s
         queued = queue[-1] > threshold / 2
         if not queued:
@@ -630,7 +630,7 @@ class RateController:
             return
         interval = frame_interval_s
         if self._episode is None:                  # the link began to queue: where it was, what is known so far
-            self._episode = [st.index, -1]
+            self._episode = [st.index, None]
         self._last_overuse = now
         if capacity is not None:
             delivered = self._delivery_mbps()        # jitter may shorten a run's span; what was delivered may not
@@ -638,10 +638,10 @@ class RateController:
                 capacity = min(capacity, delivered)
             st.capacity_mbps = capacity
             self._headroom = (capacity, now)
-            if pairs == self._episode[1]:
+            if newest == self._episode[1]:
                 return                             # one decision per new frame that queued: its spacing is news
             target = c.backoff * capacity
-        elif self._episode[1] < 0 and st.trend is not None and st.trend > trend_threshold:
+        elif self._episode[1] is None and st.trend is not None and st.trend > trend_threshold:
             # the first sign, a queue that grows but no spacing to measure yet: what the link delivered while the
             # frames queued, or, without that either, half the rate
             capacity = self._delivery_mbps()
@@ -653,7 +653,7 @@ class RateController:
             self._headroom = (capacity, now)       # (the freshness of what is chosen and the pacing go by it)
         else:
             return
-        self._episode[1] = pairs
+        self._episode[1] = newest if newest is not None else -math.inf   # (-inf: decided on the trend alone)
         if c.target_mbps is not None:
             target = min(target, c.target_mbps)
         new = self._best_fitting(target, interval, capacity)
@@ -680,11 +680,12 @@ class RateController:
             return self.config.overuse_delay_s
         return max(self.config.overuse_delay_s, float(np.percentile(self._calm, 90)) + 0.01)
 
-    def _capacity_mbps(self) -> tuple[float | None, int]:
-        """The link's rate, and from how many frames, from the newest run of frames that each waited behind the one
-        before at the bottleneck (sent before the one before would have arrived had nothing queued: their arrival
-        spacing is the link's serialization), within the last ``2 * trend_frames`` frames; (None, 0) without a run
-        of at least two such frames.
+    def _capacity_mbps(self) -> tuple[float | None, float | None]:
+        """The link's rate from the newest run of frames that each waited behind the one before at the bottleneck
+        (sent before the one before would have arrived had nothing queued: their arrival spacing is the link's
+        serialization), within the last ``2 * trend_frames`` frames, and the send time of the run's newest frame
+        (which tells a new measurement from the last one: once the run fills the window, its length stays the
+        same); (None, None) without a run of at least two such frames.
         Frames the pacing spaced out tell nothing about the link and are not used."""
         recent = list(self._samples)[-2 * self.config.trend_frames:]
         base = self._base_owd()
@@ -694,14 +695,14 @@ class RateController:
         # also decides which pairs look queued) counts only at its two ends
         waited = [y.t_sent + base + margin < x.t_arrive for x, y in zip(recent, recent[1:])]
         if not any(waited):
-            return None, 0
+            return None, None
         end = max(i for i, w in enumerate(waited) if w)
         start = _run_start(waited, end)
         run = recent[start:end + 2]
         span = run[-1].t_arrive - run[0].t_arrive
         if len(run) < 3 or span <= 1e-3:          # one pair alone: its two ends' jitter is most of its span
-            return None, 0
-        return sum(y.size for y in run[1:]) * 8 / span / 1e6, len(run) - 1
+            return None, None
+        return sum(y.size for y in run[1:]) * 8 / span / 1e6, run[-1].t_sent
 
     def _delivery_mbps(self) -> float | None:
         """What the link delivered over the newest run of frames that each arrived late (their one-way delay more

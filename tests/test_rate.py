@@ -180,11 +180,37 @@ def test_the_first_decision_goes_by_what_the_link_delivered():
         c.frame_sent(t, fid, size, top)
     for t, fid, size, arrive in sends:
         c.report(arrive + 0.05, [(fid, size, arrive)], 1 / 30)
-    assert c._capacity_mbps() == (None, 0)                 # frame 11 was sent after frame 10 had left
+    assert c._capacity_mbps() == (None, None)              # frame 11 was sent after frame 10 had left
     assert c.state.overuse and c.state.decreases == 1
     assert 0.8 * 12 < c.state.capacity_mbps <= 12.0        # 200 kB over the 148 ms the link was busy with them
     assert c.predicted_mbps(c.index, 1 / 30) <= 0.85 * c.state.capacity_mbps < c.predicted_mbps(top, 1 / 30) / 2
     assert c.headroom_mbps(0.70) == pytest.approx(c.state.capacity_mbps, rel=0.05)
+
+
+
+def test_a_queue_longer_than_the_measuring_window_still_gets_decisions():
+    """Frames of 100 kB every 1/30 s (24 Mbit/s) into a link of 16 Mbit/s that falls to 8 after 20 frames: every
+    frame waits behind the one before, so the run the link's rate is measured from fills the last 2 * trend_frames
+    frames and then slides. Each newly queued frame is news (before, a decision needed the run to change its
+    length, so none came once it filled the window): the controller follows the second drop to a point that fits."""
+    c = _controller(start_mbps=100)
+    top, size, free, events = c.index, 100_000, 0.0, []
+    for fid in range(40):
+        t = fid / 30
+        free = max(free, t) + size * 8 / ((16.0 if fid < 20 else 8.0) * 1e6)
+        events += [(t, "sent", fid), (free + 0.05 + 0.05, "report", (fid, size, free + 0.05))]
+    moved = []                                  # the frames whose report moved the controller
+    for t, kind, what in sorted(events, key=lambda e: e[0]):
+        if kind == "sent":
+            c.frame_sent(t, what, size, top)    # (all at one point: the decisions alone are under test)
+        else:
+            index = c.index
+            c.report(t, [what], 1 / 30)
+            if c.index != index:
+                moved.append(what[0])
+    assert c.state.capacity_mbps == pytest.approx(8.0, rel=0.1)
+    assert any(fid >= 20 for fid in moved)     # the run had filled the window long before frame 20
+    assert c.predicted_mbps(c.index, 1 / 30) <= c.config.backoff * c.state.capacity_mbps
 
 
 # ---------------------------------------------------------------------------- through the replay driver
