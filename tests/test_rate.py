@@ -187,7 +187,6 @@ def test_the_first_decision_goes_by_what_the_link_delivered():
     assert c.headroom_mbps(0.70) == pytest.approx(c.state.capacity_mbps, rel=0.05)
 
 
-
 def test_a_queue_longer_than_the_measuring_window_still_gets_decisions():
     """Frames of 100 kB every 1/30 s (24 Mbit/s) into a link of 16 Mbit/s that falls to 8 after 20 frames: every
     frame waits behind the one before, so the run the link's rate is measured from fills the last 2 * trend_frames
