@@ -522,10 +522,12 @@ class RateController:
     def bytes_per_frame(self, i: int) -> float:
         """Predicted bytes per frame at point ``i``: as observed there over its reference cycle, or as observed at
         the nearest point used, scaled by the ladder's ratio of the two (the ladder's own figure until any frame was
-        sent)."""
+        sent); the server's own settings, until seen, ``own_guess`` times the ladder's best point's prediction."""
         own = self._observed_bytes(i)
         if own is not None:
             return own
+        if i == self.own_index:
+            return self.config.own_guess * self.bytes_per_frame(self._best)
         nominal = self._nominal_bytes(i)
         seen = set(self._bytes_res) | set(self._bytes_ref)
         if seen:

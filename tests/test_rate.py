@@ -312,6 +312,22 @@ def test_the_servers_own_settings_come_only_after_a_calm_spell_at_the_ladders_be
         1.5 * fresh.predicted_mbps(best, 1 / 30))
 
 
+def test_the_servers_own_settings_are_guessed_from_the_best_point_not_the_nearest_one():
+    """Before they are seen, the server's own settings are predicted at own_guess times the ladder's best point's
+    prediction, also where another point's frames are nearer their guessed size. Here a 15 fps point's frames
+    (200 kB in the ladder's terms, against 125 kB for the best point and 187.5 kB for own) came twice their ladder
+    size: scaled from it, own would be predicted at 3 times the best point's rate, over the slow start's limit of 2."""
+    ladder = Ladder((OperatingPoint("f15", crf=28, fps=15, mbps=24.0, flip=0.10),
+                     OperatingPoint("f30", crf=23, mbps=30.0, flip=0.05)), command="test ladder")
+    c = RateController(RateConfig(ladder, start_mbps=100, own=own_point(18.0, 0.5, 5)))
+    best = c._best
+    assert ladder[best].name == "f30"
+    for fid, (index, size) in enumerate([(0, 400_000)] * 5 + [(best, 125_000)] * 5):
+        c.frame_sent(fid / 30, fid, size, index, self_contained=fid % 5 == 0)
+    assert c.predicted_mbps(best, 1 / 30) == pytest.approx(30.0)
+    assert c.predicted_mbps(c.own_index, 1 / 30) == pytest.approx(1.5 * 30.0)
+
+
 def test_a_link_that_drops_under_the_servers_own_settings_sends_the_controller_back_to_the_ladder():
     """Through the replay: the server's own settings on a fast link, then at 5 s a drop to 40 Mbit/s (under their
     1.5 x 64): back on a ladder point that fits within half a second, and frames fresh again."""
