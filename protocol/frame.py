@@ -166,7 +166,7 @@ def split_index(rest: bytes) -> tuple[int, int]:
 
 def join_video(rest: bytes, video: bytes) -> bytes:
     """The encoded frame of a ``rest`` (:func:`split_video`) with ``video`` (which may differ from the original:
-    a receiver that re-encoded the picture)."""
+    a receiver that re-encoded the picture, or the access unit as reassembled from RTP)."""
     split_index(rest)
     head = bytearray(rest[_SPLIT.size:_SPLIT.size + _HEADER.size])
     n_geom = _VIDEO_LEN.unpack_from(head, _VIDEO_LEN_AT)[1]

@@ -266,8 +266,9 @@ def test_colour_conversion_interpolates_chroma():
 
 
 def test_a_decoded_picture_re_encodes_from_its_planes():
-    """The encoder takes a YuvPicture as it is (the WebRTC receiver re-encodes decoded pictures so): decoded
-    again, the planes come back as they went in, to the coding error, with no colour conversion between."""
+    """The encoder takes a YuvPicture as it is (the WebRTC receiver, when it cannot take the access units,
+    re-encodes decoded pictures so): decoded again, the planes come back as they went in, to the coding error, with
+    no colour conversion between."""
     with AtlasEncoder(WIDTH, HEIGHT, VideoSettings(threads=1)) as encoder:
         unit = encoder.encode(textured_frame(0), keyframe=True).data
     picture = AtlasDecoder(output="yuv420").decode(unit, 0)

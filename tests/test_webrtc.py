@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import queue
 import re
 
 import numpy as np
@@ -46,7 +47,11 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return 10 * np.log10(255.0 ** 2 / max(mse, 1e-12))
 
 
-def test_two_local_peers_deliver_decodable_video_and_quads():
+@pytest.mark.parametrize("tapped", [True, False], ids=["access-units", "re-encoded"])
+def test_two_local_peers_deliver_decodable_video_and_quads(tapped, monkeypatch):
+    import quadcast.transport.webrtc as webrtc
+    if not tapped:      # as on an aiortc whose receiver has no decoder queue to stand in for
+        monkeypatch.setattr(webrtc, "tap_access_units", lambda receiver, deliver: False)
     sent = _payloads(4)
     got_poses: list = []
     got_requests: list = []
@@ -81,11 +86,12 @@ def test_two_local_peers_deliver_decodable_video_and_quads():
             await ch.send(Bye())
             await asyncio.sleep(0.3)
             await ch.close()
-            return welcome, frames, ch.bytes_in
+            return welcome, frames, ch.bytes_in, ch.access_units_tapped
         finally:
             await listener.close()
 
-    welcome, frames, bytes_in = asyncio.run(asyncio.wait_for(main(), 90))
+    welcome, frames, bytes_in, access_units = asyncio.run(asyncio.wait_for(main(), 90))
+    assert access_units == tapped
     assert welcome == Welcome(1, 30.0)
     assert [f.frame_id for f in frames] == [p.frame_id for p in sent]
     assert bytes_in >= sum(len(p.geometry) for p in sent)
@@ -97,14 +103,18 @@ def test_two_local_peers_deliver_decodable_video_and_quads():
             original.frame_type, original.reference_id, original.self_contained)
         assert decode_quad_frame(received.geometry).quad_count > 0
         np.testing.assert_allclose(received.position, original.position)
-        # the picture from the video track, re-encoded by the receiver as a standalone IDR
-        assert contains_idr(received.video)
+        # the server's access unit as it was sent, or its picture coded again as a standalone IDR
+        assert contains_idr(received.video) == (original.self_contained or not tapped)
     direct = AtlasDecoder()
     reference = [direct.decode(p.video, p.frame_id) for p in sent]
+    one_stream = AtlasDecoder()
     for ref_img, received in zip(reference, frames):
-        img = AtlasDecoder().decode(received.video, received.frame_id)
-        assert img.shape == ref_img.shape
-        assert _psnr(img, ref_img) > 30.0
+        if tapped:      # the receiver's access units decode in one stream to the very same pictures
+            np.testing.assert_array_equal(one_stream.decode(received.video, received.frame_id), ref_img)
+        else:
+            img = AtlasDecoder().decode(received.video, received.frame_id)
+            assert img.shape == ref_img.shape
+            assert _psnr(img, ref_img) > 30.0
     assert len(got_poses) >= 1
     assert got_requests == [ReferenceRequest("test")]
 
@@ -175,3 +185,16 @@ def test_live_server_and_client_processes_over_webrtc(tmp_path):
     img = np.asarray(Image.open(out / shown[-1]["image"]))
     assert img.shape == (180, 320, 3) and img.std() > 5     # a rendered picture, not a black frame
     assert re.search(r"session 1 \(.*\): quasar 320x180", (tmp_path / "server.log").read_text())
+
+
+def test_the_access_unit_tap_leaves_a_receiver_it_does_not_know_alone():
+    from quadcast.transport.webrtc import tap_access_units
+
+    class Started:      # an aiortc receiver whose decoder thread already runs
+        _RTCRtpReceiver__decoder_queue = queue.Queue()
+        _RTCRtpReceiver__decoder_thread = object()
+
+    assert tap_access_units(object(), lambda t, data: None) is False
+    started = Started()
+    assert tap_access_units(started, lambda t, data: None) is False
+    assert type(started._RTCRtpReceiver__decoder_queue) is queue.Queue

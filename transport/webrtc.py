@@ -15,11 +15,16 @@ Data channels carry the same length-prefixed wire messages as TCP, split into ch
 :data:`CHUNK_BYTES` (SCTP message size limits), and are decoded by a capped
 :class:`quadcast.protocol.messages.MessageDecoder` per channel.
 
-Receiving video: aiortc decodes the track itself and hands out pictures, not access units, so the receiving
-channel pairs each decoded picture (by RTP timestamp) with its ``frames`` entry and **re-encodes it as a
-standalone H.264 IDR** (x264, crf :data:`REENCODE_CRF`) before giving the ``Frame`` to the method client, whose
-decoder expects H.264. That costs a few ms per frame and a little quality; a frame whose picture does not arrive
-within :data:`PAIR_TIMEOUT_S` is dropped (the client then asks for a reference as after any loss).
+Receiving video: aiortc has no API for a received track's encoded frames; its receiver reassembles each access unit
+from the RTP packets (jitter buffer, NACKs) and queues it for a decoder thread. The client's channel puts
+:class:`AccessUnitTap` in place of that queue (:func:`tap_access_units`), so each access unit reaches the channel
+with the NAL units the server's encoder wrote (behind the access unit delimiter below) and the method client's own
+decoder, with its strict error detection, decodes it; nothing is decoded twice or coded again. Should a later aiortc
+lay out its receiver otherwise, the tap is not installed (a warning is logged) and the channel falls back to what
+aiortc's decoder hands out: it **re-encodes** each decoded picture as a standalone H.264 IDR (x264, crf
+:data:`REENCODE_CRF`; a generation of loss, and aiortc conceals damaged pictures instead of refusing them). Either
+way the channel pairs each picture (by RTP timestamp) with its ``frames`` entry; a frame whose picture does not
+arrive within :data:`PAIR_TIMEOUT_S` is dropped (the client then asks for a reference as after any loss).
 ``bytes_in`` / ``bytes_out`` count data-channel bytes plus the H.264 bytes of the track (no RTP/SRTP overhead).
 
 Signalling is one HTTP request: the client POSTs its offer (JSON ``{"sdp", "type"}``) to ``/offer`` on the
@@ -42,6 +47,7 @@ import hmac
 import json
 import logging
 import math
+import queue
 import ssl as _ssl
 import time
 from dataclasses import dataclass
@@ -54,7 +60,7 @@ from quadcast.protocol.messages import Frame, Message, MessageDecoder, PoseUpdat
 from quadcast.transport.channel import Channel, ServerBusy
 
 __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
-           "CHUNK_BYTES", "REENCODE_CRF"]
+           "AccessUnitTap", "tap_access_units", "CHUNK_BYTES", "REENCODE_CRF"]
 
 log = logging.getLogger("quadcast.webrtc")
 
@@ -62,7 +68,8 @@ CHUNK_BYTES = 16 * 1024
 """Largest data-channel message we send (SCTP implementations accept at least 64 KiB; stay well below)."""
 
 REENCODE_CRF = 18.0
-"""x264 quality of the receiver-side re-encode of decoded pictures (see the module docstring)."""
+"""x264 quality of the receiver-side re-encode of decoded pictures, when the tap is not installed (see the module
+docstring)."""
 
 PAIR_TIMEOUT_S = 2.0
 """How long a received frame waits for its picture from the video track."""
@@ -87,6 +94,14 @@ def _pc_classes():
     except ImportError as exc:  # pragma: no cover - aiortc is a dependency
         raise RuntimeError(f"WebRTC transport needs aiortc: {exc}") from exc
     return MediaStreamTrack, RTCPeerConnection, RTCSessionDescription
+
+
+def _aiortc_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("aiortc")
+    except PackageNotFoundError:  # pragma: no cover
+        return "unknown version"
 
 
 def ice_configuration(stun: str | None = None):
@@ -121,6 +136,38 @@ def _atlas_track_class():
     return AtlasTrack
 
 
+class AccessUnitTap(queue.Queue):
+    """Stands in for an aiortc ``RTCRtpReceiver``'s decoder queue: each reassembled H.264 access unit goes to
+    ``deliver(rtp_timestamp, data)`` on the event loop, undecoded; anything else (another codec, the end marker
+    ``None``) goes on to the receiver's decoder thread as before."""
+
+    def __init__(self, deliver: Callable[[int, bytes], None]) -> None:
+        super().__init__()
+        self.deliver = deliver
+
+    def put(self, item, block: bool = True, timeout: float | None = None) -> None:
+        if item is not None:
+            codec, encoded = item
+            if codec.mimeType.lower() == "video/h264":
+                self.deliver(int(encoded.timestamp), bytes(encoded.data))
+                return
+        super().put(item, block, timeout)
+
+
+_DECODER_QUEUE = "_RTCRtpReceiver__decoder_queue"
+
+
+def tap_access_units(receiver, deliver: Callable[[int, bytes], None]) -> bool:
+    """Put an :class:`AccessUnitTap` in place of ``receiver``'s decoder queue, before the receiver starts. False
+    (nothing changed) when this aiortc's receiver has no such queue or has started decoding."""
+    current = getattr(receiver, _DECODER_QUEUE, None)
+    thread = getattr(receiver, "_RTCRtpReceiver__decoder_thread", "missing")
+    if type(current) is not queue.Queue or thread is not None or not current.empty():
+        return False
+    setattr(receiver, _DECODER_QUEUE, AccessUnitTap(deliver))
+    return True
+
+
 class WebRtcChannel(Channel):
     """The wire protocol over an open ``RTCPeerConnection`` (see the module docstring)."""
 
@@ -137,7 +184,9 @@ class WebRtcChannel(Channel):
         self._decoders = {name: MessageDecoder(max_message_bytes) for name in CHANNELS}
         self._video_index = 0
         self._meta: collections.OrderedDict[int, tuple[float, bytes]] = collections.OrderedDict()
+        # by track index: access units (bytes) from the tap, or aiortc's decoded pictures without it
         self._pictures: collections.OrderedDict[int, object] = collections.OrderedDict()
+        self.access_units_tapped = False
         self._encoder = None
         self._video_task: asyncio.Task | None = None
         for name, dc in channels.items():
@@ -151,19 +200,32 @@ class WebRtcChannel(Channel):
 
     # ---------------------------------------------------------------- receiving
 
+    def tap_video(self, receiver) -> bool:
+        """Take the access units of ``receiver``'s track undecoded (:func:`tap_access_units`; the client side,
+        before the connection starts). False when aiortc's receiver does not allow it: then :meth:`attach_video`'s
+        decoded pictures are re-encoded."""
+        self.access_units_tapped = tap_access_units(receiver, self._on_access_unit)
+        return self.access_units_tapped
+
     def attach_video(self, track) -> None:
-        """Start consuming a remote video track (the client side)."""
+        """Start consuming a remote video track (the client side; with the tap installed the track stays empty)."""
         self._video_task = asyncio.ensure_future(self._read_video(track))
+
+    def _on_access_unit(self, rtp_timestamp: int, data: bytes) -> None:
+        if not self.closed:
+            self._add_picture(rtp_timestamp // TICKS_PER_FRAME, data)
+
+    def _add_picture(self, index: int, picture) -> None:
+        self._pictures[index] = picture
+        while len(self._pictures) > MAX_PENDING:
+            self._pictures.popitem(last=False)
+        self._pair()
 
     async def _read_video(self, track) -> None:
         try:
             while True:
                 picture = await track.recv()
-                index = int(picture.pts or 0) // TICKS_PER_FRAME
-                self._pictures[index] = picture
-                while len(self._pictures) > MAX_PENDING:
-                    self._pictures.popitem(last=False)
-                self._pair()
+                self._add_picture(int(picture.pts or 0) // TICKS_PER_FRAME, picture)
         except Exception:  # noqa: BLE001 -- MediaStreamError when the track ends
             return
 
@@ -214,7 +276,8 @@ class WebRtcChannel(Channel):
                     continue
                 return
             self._meta.popitem(last=False)
-            self._incoming.put_nowait(Frame(join_video(rest, self._reencode(picture))))
+            video = picture if isinstance(picture, bytes) else self._reencode(picture)
+            self._incoming.put_nowait(Frame(join_video(rest, video)))
 
     def _reencode(self, picture) -> bytes:
         from quadcast.codec.encoder import AtlasEncoder, VideoSettings
@@ -550,6 +613,10 @@ async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, time
             raise RuntimeError("this aiortc build has no H.264 codec")
         video.setCodecPreferences(h264)   # the server sends our H.264 access units as they are
         channel = WebRtcChannel(pc, channels, max_message_bytes, peer=f"{host}:{port}")
+        if not channel.tap_video(video.receiver):
+            log.warning("webrtc %s:%d: this aiortc (%s) does not let the channel take the video track's access "
+                        "units; its decoded pictures are re-encoded (a generation of H.264 loss)", host, port,
+                        _aiortc_version())
 
         @pc.on("track")
         def _on_track(track) -> None:
