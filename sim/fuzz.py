@@ -103,9 +103,11 @@ def _seed_depth() -> list[bytes]:
 
 
 def _seed_http() -> list[bytes]:
-    body = b'{"type": "offer", "sdp": "v=0\\r\\no=- 1 1 IN IP4 0.0.0.0\\r\\n"}'
+    bodies = [b'{"type": "offer", "sdp": "v=0\\r\\no=- 1 1 IN IP4 0.0.0.0\\r\\n"}',
+              b'{"type": "offer", "sdp": "v=0\\r\\na=candidate:f9 1 udp 2130706431 192.0.2.2 50000 typ host\\r\\n'
+              b'a=candidate:d0 1 udp 2130706431 fd00::2 50001 typ host\\r\\n"}']
     return [b"POST /offer HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer t\r\nContent-Length: %d\r\n\r\n%s"
-            % (len(body), body)]
+            % (len(body), body) for body in bodies]
 
 
 # ------------------------------------------------------------------------------------------------ checks
@@ -145,7 +147,8 @@ _LOOP: asyncio.AbstractEventLoop | None = None
 
 
 def _check_signalling(data: bytes, chunk: int) -> bool:
-    from quadcast.transport.webrtc import _parse_sdp, _read_http
+    from quadcast.sim.rtc_proxy import candidate_addresses, rewrite_candidates
+    from quadcast.transport.webrtc import parse_description, read_http_message
     global _LOOP
     if _LOOP is None:
         _LOOP = asyncio.new_event_loop()
@@ -155,9 +158,13 @@ def _check_signalling(data: bytes, chunk: int) -> bool:
         for i in range(0, len(data), chunk):
             reader.feed_data(data[i:i + chunk])
         reader.feed_eof()
-        return await _read_http(reader)
+        return await read_http_message(reader)
     start, headers, body = _LOOP.run_until_complete(read())
-    _parse_sdp(body, "offer")
+    sdp = parse_description(body, "offer")["sdp"]
+    # what `quadcast link --webrtc` does with it: every candidate it keeps names a stand-in
+    addrs = candidate_addresses(sdp)
+    stand_ins = {a: ("127.0.0.1", 40000 + i) for i, a in enumerate(addrs)}
+    assert candidate_addresses(rewrite_candidates(sdp, stand_ins)) == [stand_ins[a] for a in addrs]
     return True
 
 

@@ -39,7 +39,7 @@ from quadcast.protocol.messages import DEFAULT_MAX_MESSAGE_BYTES, MessageSplitte
 from quadcast.sim.link import LinkModel, parse_duration_ms, parse_loss, parse_rate_mbit
 from quadcast.sim.ratetrace import RateTrace
 
-__all__ = ["DEFAULT_MAX_QUEUE_BYTES", "DirectionStats", "LinkProxy", "ProxyStats", "parse_link_args"]
+__all__ = ["DEFAULT_MAX_QUEUE_BYTES", "DirectionStats", "LinkProxy", "ProxyStats", "ShapedDirection", "parse_link_args"]
 
 log = logging.getLogger("quadcast.proxy")
 
@@ -86,8 +86,13 @@ class ProxyStats:
     framing_errors: int = 0       # connections closed because a stream was not valid framing
 
 
-class _Direction:
-    """One shaped direction: the link model, its queue accounting and the task delivering its arrivals."""
+class ShapedDirection:
+    """One shaped direction: the link model, its queue accounting and the task delivering its arrivals.
+
+    :meth:`submit` takes a message with its sink, which has ``in_flight`` (a dict by direction name),
+    ``write_buffer_size(name)`` (bytes still waiting in the receiving side's buffer) and ``deliver(name, raw)``
+    (called when the model says the message arrives): a proxied TCP connection here, a UDP route in
+    :mod:`quadcast.sim.rtc_proxy`."""
 
     def __init__(self, name: str, link: LinkModel, max_queue_bytes: int, stats: DirectionStats) -> None:
         self.name, self.link, self.max_queue_bytes, self.stats = name, link, max_queue_bytes, stats
@@ -102,7 +107,7 @@ class _Direction:
             self._backlog_bytes -= self._backlog.popleft()[1]
         return self._backlog_bytes
 
-    def submit(self, conn: "_Connection", raw: bytes, now: float) -> None:
+    def submit(self, conn, raw: bytes, now: float) -> None:
         self.stats.messages_in += 1
         self.stats.bytes_in += len(raw)
         waiting = self.queued_bytes(now) + conn.write_buffer_size(self.name)
@@ -270,7 +275,7 @@ class LinkProxy:
         self.half_close_timeout = float(half_close_timeout)
         self.stats = ProxyStats()
         self._server: asyncio.AbstractServer | None = None
-        self._directions: dict[str, _Direction] = {}
+        self._directions: dict[str, ShapedDirection] = {}
         self._connections: set[_Connection] = set()
         self._handlers: set[asyncio.Task] = set()
 
@@ -293,8 +298,8 @@ class LinkProxy:
         for link in (self.up, self.down):        # a rate trace starts with the proxy
             if link.rate_trace is not None:
                 link.trace_start = asyncio.get_running_loop().time()
-        self._directions = {"up": _Direction("up", self.up, self.max_queue_bytes, self.stats.up),
-                            "down": _Direction("down", self.down, self.max_queue_bytes, self.stats.down)}
+        self._directions = {"up": ShapedDirection("up", self.up, self.max_queue_bytes, self.stats.up),
+                            "down": ShapedDirection("down", self.down, self.max_queue_bytes, self.stats.down)}
         for d in self._directions.values():
             d.task = asyncio.create_task(d.run(), name=f"proxy-link-{d.name}")
         self._server = await asyncio.start_server(self._on_client, self.listen_host, self.listen_port)

@@ -198,3 +198,48 @@ def test_the_access_unit_tap_leaves_a_receiver_it_does_not_know_alone():
     started = Started()
     assert tap_access_units(started, lambda t, data: None) is False
     assert type(started._RTCRtpReceiver__decoder_queue) is queue.Queue
+
+
+class _Emitter:
+    """Stands in for an aiortc peer connection or data channel: takes event handlers and never calls them."""
+
+    connectionState = "connected"
+
+    def on(self, event, handler=None):
+        return handler if handler is not None else (lambda fn: fn)
+
+
+def _split_frames(n: int):
+    """n small frames as the server's channel splits them: (track index, rest, access unit)."""
+    from quadcast.protocol.frame import FramePayload, FrameType, Method, encode_frame_payload, split_video
+    out = []
+    for i in range(n):
+        payload = FramePayload(Method.QUASAR, i, FrameType.RESIDUAL, 0, i / 30, np.zeros(3), np.array([0, 0, 0, 1.0]),
+                               video=bytes([i % 251]) * (500 + i), geometry=b"g" * 300)
+        rest, video = split_video(encode_frame_payload(payload), i)
+        out.append((i, rest, video))
+    return out
+
+
+def test_frames_whose_data_channel_lags_the_video_track_are_still_paired():
+    """Under loss SCTP delivers the frames' data late while the RTP pictures keep coming: a second of pictures
+    ahead (more than the old count cap of 32) must still find their frames."""
+    from quadcast.protocol.messages import encode_message
+    from quadcast.transport.webrtc import CHANNELS, TICKS_PER_FRAME, WebRtcChannel
+
+    async def main():
+        ch = WebRtcChannel(_Emitter(), {name: _Emitter() for name in CHANNELS}, 1 << 20)
+        frames = _split_frames(48)
+        for index, _, video in frames:
+            ch._on_access_unit(index * TICKS_PER_FRAME, video)
+        for _, rest, _ in frames:
+            ch._on_message("frames", encode_message(Frame(rest)))
+        out = []
+        while not ch._incoming.empty():
+            out.append(decode_frame_payload((await ch.recv()).payload))
+        return out, ch.frames_unpaired
+
+    out, unpaired = asyncio.run(main())
+    assert unpaired == 0
+    assert [p.frame_id for p in out] == list(range(48))
+    assert all(p.video == bytes([p.frame_id % 251]) * (500 + p.frame_id) for p in out)

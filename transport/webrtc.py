@@ -60,7 +60,8 @@ from quadcast.protocol.messages import Frame, Message, MessageDecoder, PoseUpdat
 from quadcast.transport.channel import Channel, ServerBusy
 
 __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
-           "AccessUnitTap", "tap_access_units", "CHUNK_BYTES", "REENCODE_CRF"]
+           "AccessUnitTap", "tap_access_units", "read_http_message", "http_response", "error_body",
+           "parse_description", "CHUNK_BYTES", "REENCODE_CRF"]
 
 log = logging.getLogger("quadcast.webrtc")
 
@@ -75,7 +76,12 @@ PAIR_TIMEOUT_S = 2.0
 """How long a received frame waits for its picture from the video track."""
 
 MAX_PENDING = 32
-"""Frames / pictures waiting to be paired; past this the oldest are dropped."""
+"""Access units queued on the sending side's track."""
+
+MAX_PENDING_BYTES = 64 << 20
+"""Bytes of frames (without their video) and, apart, of pictures waiting to be paired; past this the oldest are
+dropped. Nothing waits longer than :data:`PAIR_TIMEOUT_S` either. (Not a count: when the data channel lags behind
+the video track, as SCTP does under loss, every picture would be dropped before its frame came.)"""
 
 MAX_HTTP_HEADER = 16 * 1024
 MAX_HTTP_BODY = 256 * 1024
@@ -184,8 +190,10 @@ class WebRtcChannel(Channel):
         self._decoders = {name: MessageDecoder(max_message_bytes) for name in CHANNELS}
         self._video_index = 0
         self._meta: collections.OrderedDict[int, tuple[float, bytes]] = collections.OrderedDict()
-        # by track index: access units (bytes) from the tap, or aiortc's decoded pictures without it
-        self._pictures: collections.OrderedDict[int, object] = collections.OrderedDict()
+        self._meta_bytes = 0
+        # by track index, (arrival, bytes, picture): access units (bytes) from the tap, or aiortc's decoded pictures
+        self._pictures: collections.OrderedDict[int, tuple[float, int, object]] = collections.OrderedDict()
+        self._picture_bytes = 0
         self.access_units_tapped = False
         self._encoder = None
         self._video_task: asyncio.Task | None = None
@@ -216,10 +224,24 @@ class WebRtcChannel(Channel):
             self._add_picture(rtp_timestamp // TICKS_PER_FRAME, data)
 
     def _add_picture(self, index: int, picture) -> None:
-        self._pictures[index] = picture
-        while len(self._pictures) > MAX_PENDING:
-            self._pictures.popitem(last=False)
+        now = time.monotonic()
+        self._take_picture(index)
+        size = len(picture) if isinstance(picture, bytes) else picture.width * picture.height * 3 // 2
+        self._pictures[index] = (now, size, picture)
+        self._picture_bytes += size
+        while self._pictures:
+            t, _, _ = next(iter(self._pictures.values()))
+            if self._picture_bytes <= MAX_PENDING_BYTES and now - t <= PAIR_TIMEOUT_S:
+                break
+            self._take_picture(next(iter(self._pictures)))
         self._pair()
+
+    def _take_picture(self, index: int):
+        entry = self._pictures.pop(index, None)
+        if entry is None:
+            return None
+        self._picture_bytes -= entry[1]
+        return entry[2]
 
     async def _read_video(self, track) -> None:
         try:
@@ -252,9 +274,11 @@ class WebRtcChannel(Channel):
                     self._incoming.put_nowait(exc)
                     return
                 self.bytes_in += video_bytes
+                self._take_meta(index)
                 self._meta[index] = (time.monotonic(), msg.payload)
-                while len(self._meta) > MAX_PENDING:
-                    self._meta.popitem(last=False)
+                self._meta_bytes += len(msg.payload)
+                while self._meta_bytes > MAX_PENDING_BYTES:
+                    self._take_meta(next(iter(self._meta)))
                     self.frames_unpaired += 1
                 self._pair()
             else:
@@ -265,19 +289,24 @@ class WebRtcChannel(Channel):
         now = time.monotonic()
         while self._meta:
             index, (t_arrived, rest) = next(iter(self._meta.items()))
-            picture = self._pictures.pop(index, None)
+            picture = self._take_picture(index)
             if picture is None:
                 newer_picture = any(i > index for i in self._pictures)
                 if now - t_arrived > PAIR_TIMEOUT_S or (newer_picture and now - t_arrived > 0.2):
-                    self._meta.popitem(last=False)
+                    self._take_meta(index)
                     self.frames_unpaired += 1
                     log.info("webrtc %s: frame %d's picture never came; dropped", self.peer,
                              peek_frame_id(rest[8:]))
                     continue
                 return
-            self._meta.popitem(last=False)
+            self._take_meta(index)
             video = picture if isinstance(picture, bytes) else self._reencode(picture)
             self._incoming.put_nowait(Frame(join_video(rest, video)))
+
+    def _take_meta(self, index: int) -> None:
+        entry = self._meta.pop(index, None)
+        if entry is not None:
+            self._meta_bytes -= len(entry[1])
 
     def _reencode(self, picture) -> bytes:
         from quadcast.codec.encoder import AtlasEncoder, VideoSettings
@@ -362,7 +391,7 @@ class WebRtcChannel(Channel):
 
 # ------------------------------------------------------------------------------------------ signalling
 
-async def _read_http(reader: asyncio.StreamReader) -> tuple[str, dict, bytes]:
+async def read_http_message(reader: asyncio.StreamReader) -> tuple[str, dict, bytes]:
     """One HTTP/1.1 message: (start line, lower-case headers, body); ValueError on anything malformed/too big."""
     head = b""
     while b"\r\n\r\n" not in head:
@@ -394,16 +423,19 @@ async def _read_http(reader: asyncio.StreamReader) -> tuple[str, dict, bytes]:
     return lines[0], headers, body[:length]
 
 
-def _http_response(status: str, body: bytes, content_type: str = "application/json", extra: str = "") -> bytes:
+def http_response(status: str, body: bytes, content_type: str = "application/json", extra: str = "") -> bytes:
+    """An HTTP/1.1 response (``status`` as "200 OK"; ``extra``: more header lines, each ending in CRLF)."""
     return (f"HTTP/1.1 {status}\r\nContent-Type: {content_type}\r\nContent-Length: {len(body)}\r\n{extra}"
             f"Connection: close\r\n\r\n").encode() + body
 
 
-def _error_body(text: str) -> bytes:
+def error_body(text: str) -> bytes:
+    """The JSON body of a signalling error: ``{"error": text}``."""
     return json.dumps({"error": text}).encode()
 
 
-def _parse_sdp(body: bytes, expected_type: str) -> dict:
+def parse_description(body: bytes, expected_type: str) -> dict:
+    """A signalling body (JSON ``{"type", "sdp"}``) of ``expected_type`` ("offer" or "answer"); ValueError if not."""
     try:
         desc = json.loads(body)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -462,7 +494,7 @@ class WebRtcListener:
 
     def _busy(self, text: str) -> bytes:
         after = max(1, math.ceil(self.policy.retry_after_s))
-        return _http_response("503 Service Unavailable", _error_body(text), extra=f"Retry-After: {after}\r\n")
+        return http_response("503 Service Unavailable", error_body(text), extra=f"Retry-After: {after}\r\n")
 
     def _authorize(self, headers: dict) -> bytes | None:
         """The 401/403 response for a request without the right token, or None."""
@@ -471,10 +503,10 @@ class WebRtcListener:
             return None
         scheme, _, given = headers.get("authorization", "").partition(" ")
         if scheme.lower() != "bearer" or not given.strip():
-            return _http_response("401 Unauthorized", _error_body("POST /offer needs Authorization: Bearer <token>"),
+            return http_response("401 Unauthorized", error_body("POST /offer needs Authorization: Bearer <token>"),
                                   extra='WWW-Authenticate: Bearer realm="quadcast"\r\n')
         if not hmac.compare_digest(given.strip().encode(), token.encode()):
-            return _http_response("403 Forbidden", _error_body("wrong token"))
+            return http_response("403 Forbidden", error_body("wrong token"))
         return None
 
     async def _on_http(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -495,24 +527,24 @@ class WebRtcListener:
                     log.info("webrtc signalling from %s: TLS handshake failed: %s", peer, exc or "timed out")
                     return
             try:
-                start, headers, body = await asyncio.wait_for(_read_http(reader), policy.request_timeout)
+                start, headers, body = await asyncio.wait_for(read_http_message(reader), policy.request_timeout)
                 method, path, *_ = start.split(" ") + ["", ""]
                 if method != "POST" or path != "/offer":
-                    writer.write(_http_response("404 Not Found", _error_body("POST /offer only")))
+                    writer.write(http_response("404 Not Found", error_body("POST /offer only")))
                 elif (denied := self._authorize(headers)) is not None:
                     log.info("webrtc signalling from %s: %s", peer, denied.split(b"\r\n", 1)[0].decode())
                     writer.write(denied)
                 elif len(self._pcs) >= policy.max_peer_connections:
                     writer.write(self._busy(f"{policy.max_peer_connections} peer connections already"))
                 else:
-                    offer = _parse_sdp(body, "offer")
+                    offer = parse_description(body, "offer")
                     answer = await self._accept(offer, peer)
-                    writer.write(_http_response("200 OK", json.dumps(answer).encode()))
+                    writer.write(http_response("200 OK", json.dumps(answer).encode()))
             except (ValueError, asyncio.TimeoutError) as exc:
-                writer.write(_http_response("400 Bad Request", _error_body(str(exc))))
+                writer.write(http_response("400 Bad Request", error_body(str(exc))))
             except Exception as exc:  # noqa: BLE001 -- a bad offer must not take the server down
                 log.warning("webrtc signalling from %s failed: %s", peer, exc)
-                writer.write(_http_response("500 Internal Server Error", _error_body(str(exc))))
+                writer.write(http_response("500 Internal Server Error", error_body(str(exc))))
             await writer.drain()
         except (ConnectionError, OSError):
             pass
@@ -576,7 +608,7 @@ async def _post_offer(host: str, port: int, offer: dict, timeout: float, token: 
         writer.write((f"POST /offer HTTP/1.1\r\nHost: {host}:{port}\r\nContent-Type: application/json\r\n{auth}"
                       f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n").encode() + body)
         await writer.drain()
-        start, headers, answer = await asyncio.wait_for(_read_http(reader), timeout)
+        start, headers, answer = await asyncio.wait_for(read_http_message(reader), timeout)
         status = (start.split(" ") + ["", ""])[1]
         said = f"signalling at {host}:{port} answered {start!r}: {answer[:200].decode('utf-8', 'replace')}"
         if status == "503":
@@ -589,7 +621,7 @@ async def _post_offer(host: str, port: int, offer: dict, timeout: float, token: 
             raise PermissionError(said)
         if status != "200":
             raise ConnectionError(said)
-        return _parse_sdp(answer, "answer")
+        return parse_description(answer, "answer")
     finally:
         writer.close()
 

@@ -172,24 +172,31 @@ def link_models(delay: str, jitter: str, rate: str | None, loss: str, seed: int,
 def cmd_link(args) -> int:
     from quadcast.server.app import check_bind
     from quadcast.sim.proxy import LinkProxy
+    from quadcast.sim.rtc_proxy import RtcLinkProxy
     _setup_logging(args.verbose)
     to_host, to_port = parse_hostport(args.to)
     check_bind(args.host, "x" if args.public else "", allow_plaintext_token=True)   # the link holds no token
     up, down = link_models(args.delay, args.jitter, args.rate, args.loss, args.seed, args.rate_trace)
-    proxy = LinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down)
+    if args.webrtc:
+        proxy = RtcLinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down)
+        units, conns = "datagrams", "signalling requests"
+    else:
+        proxy = LinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down)
+        units, conns = "messages", "connections"
 
     def report() -> None:
         s = proxy.stats
-        print(f"link: stopped; up {s.up.messages_forwarded} forwarded / {s.up.messages_dropped} dropped, down "
-              f"{s.down.messages_forwarded} forwarded / {s.down.messages_dropped} dropped, "
-              f"{s.connections_accepted} connections", flush=True)
+        print(f"link: stopped; {units} up {s.up.messages_forwarded} forwarded / {s.up.messages_dropped} dropped, "
+              f"down {s.down.messages_forwarded} forwarded / {s.down.messages_dropped} dropped, "
+              f"{s.connections_accepted} {conns}", flush=True)
 
     async def main() -> None:
         await proxy.start()
         rate = args.rate or "unlimited"
         if args.rate_trace:
             rate = f"{rate} up, {args.rate_trace} down"
-        print(f"link: listening on {args.host}:{proxy.port} -> {to_host}:{to_port} (delay {args.delay}, jitter "
+        print(f"link: listening on {args.host}:{proxy.port} -> {to_host}:{to_port} ("
+              f"{'webrtc: signalling and UDP, ' if args.webrtc else ''}delay {args.delay}, jitter "
               f"{args.jitter}, rate {rate}, loss {args.loss})", flush=True)
         await proxy.serve_forever()
 
@@ -310,7 +317,8 @@ def add_live_commands(sub) -> None:
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(func=cmd_client)
 
-    p = sub.add_parser("link", help="netem-like TCP proxy between a client and a server")
+    p = sub.add_parser("link", help="netem-like proxy between a client and a server (TCP, or with --webrtc the "
+                                    "WebRTC signalling and its UDP paths)")
     p.add_argument("--listen", type=int, required=True, help="port to listen on (0: a free one, printed)")
     p.add_argument("--host", default="127.0.0.1", help="listen address")
     p.add_argument("--public", action="store_true", help="allow a non-loopback --host")
@@ -321,7 +329,11 @@ def add_live_commands(sub) -> None:
     p.add_argument("--rate-trace", help="server -> client capacity over time instead of --rate: a Mahimahi trace "
                                         "(one line per 1500-byte delivery opportunity, ms; it repeats) or "
                                         "builtin:const-20|step-100-15-100|sawtooth-10-40")
-    p.add_argument("--loss", default="0%", help="message loss per direction, e.g. 0.5%%")
+    p.add_argument("--loss", default="0%", help="message loss per direction, e.g. 0.5%% (datagrams with --webrtc)")
+    p.add_argument("--webrtc", action="store_true",
+                   help="for `--transport webrtc`: --to is the server's signalling port; the link answers the "
+                        "client's POST /offer, puts its own UDP sockets in both descriptions and shapes every "
+                        "datagram between the peers")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(func=cmd_link)
