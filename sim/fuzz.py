@@ -14,7 +14,10 @@ Targets (expected error in brackets):
 - ``frame``: :func:`quadcast.protocol.frame.decode_frame_payload` and the WebRTC split form [ProtocolError];
 - ``quads``: :func:`quadcast.protocol.quads.decode_quad_frame` for a 64x36 session [ProtocolError];
 - ``depth``: :func:`quadcast.protocol.depth.decode_depth` for a 64x36 session [ProtocolError];
-- ``signalling``: WebRTC's ``POST /offer`` HTTP reader and SDP parser [ValueError];
+- ``signalling``: WebRTC's ``POST /offer`` HTTP reader and SDP parser, and ``quadcast link --webrtc``'s candidate
+  rewriting [ValueError];
+- ``access_unit``: an access unit off the WebRTC video track with its frame in band (the SEI user data taken out,
+  the frame joined and decoded) [ProtocolError];
 - ``pose_path``: PoseUpdate bodies of arbitrary doubles, with and without a gaze (NaN, inf, 1e300, subnormals, time
   steps of any size) decoded, then fed to a server session core whose every decision must be a pose the renderer
   and the client accept [ProtocolError at decoding; nothing after].
@@ -53,7 +56,7 @@ class FuzzResult:
     examples: list = field(default_factory=list)    # the first few unexpected exceptions (tracebacks)
 
     def line(self) -> str:
-        return (f"fuzz: {self.target:<10} {self.inputs:>7} inputs, {self.accepted:>6} accepted, "
+        return (f"fuzz: {self.target:<11} {self.inputs:>7} inputs, {self.accepted:>6} accepted, "
                 f"{self.unexpected} unexpected exceptions, {self.hangs} hangs over {HANG_S:g} s "
                 f"(slowest {self.slowest_s * 1e3:.1f} ms)")
 
@@ -127,6 +130,21 @@ def _check_frame(data: bytes, chunk: int) -> bool:
     rest, video = split_video(data, chunk)
     assert split_index(rest) == (chunk, len(payload.video))
     assert decode_frame_payload(join_video(rest, video)).frame_id == payload.frame_id
+    return True
+
+
+def _seed_access_units() -> list[bytes]:
+    from quadcast.protocol.frame import split_video
+    from quadcast.transport.webrtc import ACCESS_UNIT_DELIMITER, access_unit_with_frame
+    rest, video = split_video(_seed_frames()[0], 3)
+    return [access_unit_with_frame(rest, video), ACCESS_UNIT_DELIMITER + access_unit_with_frame(rest, video)]
+
+
+def _check_access_unit(data: bytes, chunk: int) -> bool:
+    """An access unit off the WebRTC video track, with its frame in band (what the client's channel parses)."""
+    from quadcast.protocol.frame import decode_frame_payload
+    from quadcast.transport.webrtc import frame_in_access_unit
+    decode_frame_payload(frame_in_access_unit(data))
     return True
 
 
@@ -224,6 +242,7 @@ def _targets():
             "quads": (lambda: _seed_quads(), _check_quads, (ProtocolError,)),
             "depth": (_seed_depth, _check_depth, (ProtocolError,)),
             "signalling": (_seed_http, _check_signalling, (ValueError,)),
+            "access_unit": (_seed_access_units, _check_access_unit, (ProtocolError,)),
             "pose_path": (None, _check_pose_path, (ProtocolError,)),
         })
     return TARGETS
@@ -328,7 +347,7 @@ def run_fuzz(examples: int, targets: list[str] | None = None, seed: int = 0, out
         for ex in r.examples:
             print(ex, file=out)
     total = sum(r.inputs for r in results)
-    print(f"fuzz: total      {total:>7} inputs, {sum(r.unexpected for r in results)} unexpected exceptions, "
+    print(f"fuzz: total       {total:>7} inputs, {sum(r.unexpected for r in results)} unexpected exceptions, "
           f"{sum(r.hangs for r in results)} hangs over {HANG_S:g} s, peak RSS {peak_rss_mib():.0f} MiB", file=out,
           flush=True)
     return results

@@ -9,7 +9,8 @@ def test_every_fuzz_target_only_raises_its_documented_error():
     out = io.StringIO()
     results = run_fuzz(300, out=out)
     text = out.getvalue()
-    assert {r.target for r in results} == {"messages", "frame", "quads", "depth", "signalling", "pose_path"}
+    assert {r.target for r in results} == {"messages", "frame", "quads", "depth", "signalling", "access_unit",
+                                                   "pose_path"}
     for r in results:
         assert r.inputs == 300, r.line()
         assert r.unexpected == 0, "\n".join(r.examples)

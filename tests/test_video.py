@@ -409,3 +409,24 @@ def test_a_grey_picture_codes_and_decodes_as_grey():
     finally:
         decoder.close()
     assert rgb.shape == (36, 64, 3) and np.abs(rgb.astype(int) - 130).max() <= 4
+
+
+@pytest.mark.parametrize("kind", ["random", "zeros", "start codes"])
+@pytest.mark.parametrize("n", [0, 1, 254, 255, 256, 20_000])
+def test_user_data_travels_in_an_sei_nal_unit_and_comes_out_whole(kind, n):
+    """The WebRTC path carries each frame's quads inside its access unit (codec/nal.py): no start code may appear
+    inside the NAL unit, and taking it out gives the data and the access unit back exactly, wherever it sits."""
+    from quadcast.codec.nal import NAL_SEI, nal_unit_types, take_user_data, user_data_nal
+    uuid = b"0123456789abcdef"
+    data = {"random": np.random.default_rng(n).integers(0, 256, n, dtype=np.uint8).tobytes(), "zeros": bytes(n),
+            "start codes": (b"\x00\x00\x01\x00\x00\x03\x00\x00\x00\x01" * (n // 10 + 1))[:n]}[kind]
+    au = b"\x00\x00\x00\x01\x09\xf0" + b"\x00\x00\x00\x01\x67\x42\x00\x1f" + b"\x00\x00\x01\x65\x88\x84\x21"
+    nal = user_data_nal(uuid, data)
+    assert b"\x00\x00\x01" not in nal[4:] and b"\x00\x00\x00" not in nal[4:]
+    for carrier in (nal + au, au + nal, au[:6] + nal + au[6:]):
+        assert nal_unit_types(carrier).count(NAL_SEI) == 1
+        assert take_user_data(carrier, uuid) == (data, au)
+    assert take_user_data(au, uuid) == (None, au)
+    assert take_user_data(nal + au, b"fedcba9876543210") == (None, nal + au)     # another UUID's is left alone
+    with pytest.raises(ValueError, match="16-byte UUID"):
+        user_data_nal(b"short", data)

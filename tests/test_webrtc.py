@@ -47,16 +47,26 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return 10 * np.log10(255.0 ** 2 / max(mse, 1e-12))
 
 
-@pytest.mark.parametrize("tapped", [True, False], ids=["access-units", "re-encoded"])
-def test_two_local_peers_deliver_decodable_video_and_quads(tapped, monkeypatch):
+@pytest.mark.parametrize("tapped, in_band", [(True, True), (True, False), (False, False)],
+                         ids=["frames-in-access-units", "access-units-and-data-channel", "re-encoded"])
+def test_two_local_peers_deliver_decodable_video_and_quads(tapped, in_band, monkeypatch):
     import quadcast.transport.webrtc as webrtc
     if not tapped:      # as on an aiortc whose receiver has no decoder queue to stand in for
         monkeypatch.setattr(webrtc, "tap_access_units", lambda receiver, deliver: False)
+    if tapped and not in_band:      # as with a server that does not know the offer's "frames" field
+        accept = webrtc.WebRtcListener._accept
+
+        async def older_server(self, offer, peer):
+            return await accept(self, {k: v for k, v in offer.items() if k != "frames"}, peer)
+        monkeypatch.setattr(webrtc.WebRtcListener, "_accept", older_server)
     sent = _payloads(4)
     got_poses: list = []
     got_requests: list = []
 
+    server_in_band: list = []
+
     async def serve(channel):
+        server_in_band.append(channel.frames_in_band)
         hello = await channel.recv()
         assert isinstance(hello, Hello)
         await channel.send(Welcome(1, 30.0))
@@ -86,12 +96,12 @@ def test_two_local_peers_deliver_decodable_video_and_quads(tapped, monkeypatch):
             await ch.send(Bye())
             await asyncio.sleep(0.3)
             await ch.close()
-            return welcome, frames, ch.bytes_in, ch.access_units_tapped
+            return welcome, frames, ch.bytes_in, (ch.access_units_tapped, ch.frames_in_band)
         finally:
             await listener.close()
 
-    welcome, frames, bytes_in, access_units = asyncio.run(asyncio.wait_for(main(), 90))
-    assert access_units == tapped
+    welcome, frames, bytes_in, modes = asyncio.run(asyncio.wait_for(main(), 90))
+    assert modes == (tapped, in_band) and server_in_band == [in_band]
     assert welcome == Welcome(1, 30.0)
     assert [f.frame_id for f in frames] == [p.frame_id for p in sent]
     assert bytes_in >= sum(len(p.geometry) for p in sent)

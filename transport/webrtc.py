@@ -4,10 +4,15 @@ What goes where, on one ``RTCPeerConnection``:
 
 - the H.264 atlas (``FramePayload.video``) as the server's **video track**, sent *as encoded* (aiortc packetizes
   our access units; its own encoder is not used), RTP timestamp = 3000 x the frame's index on the track;
-- the rest of each frame (header, pose, quads) on the reliable ordered data channel ``frames``, as a ``Frame``
-  message in the split form of :func:`quadcast.protocol.frame.split_video` (track index and video length, then the
-  frame without its video); the receiver joins it with its picture (:func:`quadcast.protocol.frame.join_video`)
-  -- neither side parses or re-serializes the frame;
+- the rest of each frame (header, pose, quads) in the split form of :func:`quadcast.protocol.frame.split_video`
+  (track index and video length, then the frame without its video), joined on arrival with its access unit
+  (:func:`quadcast.protocol.frame.join_video`) -- neither side parses or re-serializes the frame. It travels
+  **inside its access unit** as an SEI user data NAL unit (:func:`access_unit_with_frame`), when the client takes
+  the track's access units undecoded (below) and says so in its offer (``"frames": "in-access-unit"``) and the
+  server's answer agrees: so the video track's NACKs and retransmissions carry the quads too, and a frame arrives
+  whole or not at all. Otherwise it goes on the reliable ordered data channel ``frames`` as a ``Frame`` message, and
+  the receiver pairs it with its picture. (aiortc's SCTP under loss falls seconds behind the track: the README's
+  Known limitations has the figures);
 - poses on the unordered, no-retransmit data channel ``poses`` (a lost pose is simply superseded);
 - every other message (Hello, Welcome, ReferenceRequest, ErrorMessage, Bye) on the reliable channel ``control``.
 
@@ -15,17 +20,21 @@ Data channels carry the same length-prefixed wire messages as TCP, split into ch
 :data:`CHUNK_BYTES` (SCTP message size limits), and are decoded by a capped
 :class:`quadcast.protocol.messages.MessageDecoder` per channel.
 
-Receiving video: aiortc has no API for a received track's encoded frames; its receiver reassembles each access unit
-from the RTP packets (jitter buffer, NACKs) and queues it for a decoder thread. The client's channel puts
+Receiving video: aiortc has no API for a received track's encoded frames; its receiver reassembles each access
+unit from the RTP packets (jitter buffer, NACKs) and queues it for a decoder thread. The client's channel puts
 :class:`AccessUnitTap` in place of that queue (:func:`tap_access_units`), so each access unit reaches the channel
-with the NAL units the server's encoder wrote (behind the access unit delimiter below) and the method client's own
-decoder, with its strict error detection, decodes it; nothing is decoded twice or coded again. Should a later aiortc
-lay out its receiver otherwise, the tap is not installed (a warning is logged) and the channel falls back to what
-aiortc's decoder hands out: it **re-encodes** each decoded picture as a standalone H.264 IDR (x264, crf
-:data:`REENCODE_CRF`; a generation of loss, and aiortc conceals damaged pictures instead of refusing them). Either
-way the channel pairs each picture (by RTP timestamp) with its ``frames`` entry; a frame whose picture does not
-arrive within :data:`PAIR_TIMEOUT_S` is dropped (the client then asks for a reference as after any loss).
-``bytes_in`` / ``bytes_out`` count data-channel bytes plus the H.264 bytes of the track (no RTP/SRTP overhead).
+with the NAL units the server's encoder wrote (behind the access unit delimiter below, and without the frame's SEI,
+which the channel takes out) and the method client's own decoder, with its strict error detection, decodes it;
+nothing is decoded twice or coded again. An access unit that carries no frame, or a malformed one, is a lost frame
+(logged and counted in ``frames_unpaired``; the client asks for a reference as after any loss). Should a later
+aiortc lay out its receiver otherwise, the tap is not installed (a warning is logged), frames go on the data
+channel, and the channel falls back to what aiortc's decoder hands out: it **re-encodes** each decoded picture as a
+standalone H.264 IDR (x264, crf :data:`REENCODE_CRF`; a generation of loss, and aiortc conceals damaged pictures
+instead of refusing them). With frames on the data channel, pictures and frames wait to be paired (by RTP
+timestamp) for at most :data:`PAIR_TIMEOUT_S` and :data:`MAX_PENDING_BYTES` each; a frame whose picture does not
+come is dropped (the client then asks for a reference).
+``bytes_in`` / ``bytes_out`` count data-channel bytes plus the bytes of the track's access units (no RTP/SRTP
+overhead).
 
 Signalling is one HTTP request: the client POSTs its offer (JSON ``{"sdp", "type"}``) to ``/offer`` on the
 server's port and gets the answer back; :class:`WebRtcListener` is that endpoint (a tiny HTTP/1.1 server with
@@ -53,6 +62,7 @@ import time
 from dataclasses import dataclass
 from typing import Awaitable, Callable
 
+from quadcast.codec.nal import take_user_data, user_data_nal
 from quadcast.protocol.admission import Admission, Refusal
 from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import join_video, peek_frame_id, split_index, split_video
@@ -60,8 +70,9 @@ from quadcast.protocol.messages import Frame, Message, MessageDecoder, PoseUpdat
 from quadcast.transport.channel import Channel, ServerBusy
 
 __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
-           "AccessUnitTap", "tap_access_units", "read_http_message", "http_response", "error_body",
-           "parse_description", "CHUNK_BYTES", "REENCODE_CRF"]
+           "AccessUnitTap", "tap_access_units", "access_unit_with_frame", "frame_in_access_unit",
+           "read_http_message", "http_response", "error_body", "parse_description", "CHUNK_BYTES", "REENCODE_CRF",
+           "FRAMES_IN_BAND", "FRAMES_UUID"]
 
 log = logging.getLogger("quadcast.webrtc")
 
@@ -92,6 +103,11 @@ ACCESS_UNIT_DELIMITER = b"\x00\x00\x00\x01\x09\xf0"
 only once a packet with a newer timestamp arrives, so this pushes every picture out at once (the delimiter then
 starts the next access unit, where H.264 allows it)."""
 CHANNELS = ("control", "poses", "frames")
+FRAMES_IN_BAND = "in-access-unit"
+"""The signalling field ``"frames"`` of a client that takes access units (offer) and of a server that agrees
+(answer): each frame then travels inside its access unit, not on the ``frames`` data channel."""
+FRAMES_UUID = b"quadcast/frame\x00\x01"
+"""UUID of the SEI user data that carries a frame without its video inside the access unit (frames in band)."""
 
 
 def _pc_classes():
@@ -142,6 +158,21 @@ def _atlas_track_class():
     return AtlasTrack
 
 
+def access_unit_with_frame(rest: bytes, video: bytes) -> bytes:
+    """The access unit ``video`` carrying its frame's ``rest`` (:func:`quadcast.protocol.frame.split_video`) in band:
+    an SEI user data NAL unit (:data:`FRAMES_UUID`) in front of it."""
+    return user_data_nal(FRAMES_UUID, rest) + video
+
+
+def frame_in_access_unit(access_unit: bytes) -> bytes:
+    """The encoded frame an access unit carries in band (:func:`access_unit_with_frame`): its rest joined with the
+    access unit without the SEI. ProtocolError when it carries no frame or a malformed one."""
+    rest, video = take_user_data(access_unit, FRAMES_UUID)
+    if rest is None:
+        raise ProtocolError(f"an access unit of {len(access_unit)} bytes carries no frame")
+    return join_video(rest, video)
+
+
 class AccessUnitTap(queue.Queue):
     """Stands in for an aiortc ``RTCRtpReceiver``'s decoder queue: each reassembled H.264 access unit goes to
     ``deliver(rtp_timestamp, data)`` on the event loop, undecoded; anything else (another codec, the end marker
@@ -186,6 +217,7 @@ class WebRtcChannel(Channel):
         self.bytes_in = self.bytes_out = 0
         self.closed = False
         self.frames_unpaired = 0
+        self.frames_in_band = False           # each frame's rest travels in its access unit (both sides agreed)
         self._incoming: asyncio.Queue = asyncio.Queue()
         self._decoders = {name: MessageDecoder(max_message_bytes) for name in CHANNELS}
         self._video_index = 0
@@ -220,8 +252,19 @@ class WebRtcChannel(Channel):
         self._video_task = asyncio.ensure_future(self._read_video(track))
 
     def _on_access_unit(self, rtp_timestamp: int, data: bytes) -> None:
-        if not self.closed:
+        if self.closed:
+            return
+        if not self.frames_in_band:
             self._add_picture(rtp_timestamp // TICKS_PER_FRAME, data)
+            return
+        self.bytes_in += len(data)
+        try:
+            frame = Frame(frame_in_access_unit(data))
+        except ProtocolError as exc:      # a damaged access unit is a lost frame: the client asks for a reference
+            self.frames_unpaired += 1
+            log.info("webrtc %s: access unit %d: %s; dropped", self.peer, rtp_timestamp // TICKS_PER_FRAME, exc)
+            return
+        self._incoming.put_nowait(frame)
 
     def _add_picture(self, index: int, picture) -> None:
         now = time.monotonic()
@@ -364,7 +407,11 @@ class WebRtcChannel(Channel):
         index = self._video_index
         self._video_index += 1
         rest, video = split_video(data, index)
-        self._send_bytes("frames", encode_message(Frame(rest)))
+        if self.frames_in_band:
+            video = access_unit_with_frame(rest, video)
+            self.bytes_out += len(rest)
+        else:
+            self._send_bytes("frames", encode_message(Frame(rest)))
         for au, pts in ((video, index), (ACCESS_UNIT_DELIMITER, index + 1)):
             packet = av.Packet(au)
             packet.pts = pts * TICKS_PER_FRAME
@@ -568,6 +615,7 @@ class WebRtcListener:
                     opened.set()
 
         track = _atlas_track_class()()
+        in_band = offer.get("frames") == FRAMES_IN_BAND       # the client takes access units: frames go in them
         try:
             await pc.setRemoteDescription(RTCSessionDescription(sdp=offer["sdp"], type="offer"))
             pc.addTrack(track)
@@ -586,6 +634,7 @@ class WebRtcListener:
                 await pc.close()
                 return
             channel = WebRtcChannel(pc, channels, self.max_message_bytes, video_out=track, peer=peer)
+            channel.frames_in_band = in_band
             try:
                 await self.on_channel(channel)
             finally:
@@ -595,7 +644,8 @@ class WebRtcListener:
         task = asyncio.create_task(session())
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
-        return {"sdp": pc.localDescription.sdp, "type": pc.localDescription.type}
+        answer = {"sdp": pc.localDescription.sdp, "type": pc.localDescription.type}
+        return {**answer, "frames": FRAMES_IN_BAND} if in_band else answer
 
 
 async def _post_offer(host: str, port: int, offer: dict, timeout: float, token: str = "",
@@ -656,8 +706,11 @@ async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, time
                 channel.attach_video(track)
 
         await pc.setLocalDescription(await pc.createOffer())
-        answer = await _post_offer(host, port, {"sdp": pc.localDescription.sdp, "type": pc.localDescription.type},
-                                   timeout, token, ssl)
+        offer = {"sdp": pc.localDescription.sdp, "type": pc.localDescription.type}
+        if channel.access_units_tapped:
+            offer["frames"] = FRAMES_IN_BAND
+        answer = await _post_offer(host, port, offer, timeout, token, ssl)
+        channel.frames_in_band = channel.access_units_tapped and answer.get("frames") == FRAMES_IN_BAND
         await pc.setRemoteDescription(RTCSessionDescription(sdp=answer["sdp"], type="answer"))
         deadline = time.monotonic() + timeout
         while any(dc.readyState != "open" for dc in channels.values()):
