@@ -128,15 +128,14 @@ class _StandIn(asyncio.DatagramProtocol):
         session = self.session
         other = "server" if self.side == "client" else "client"
         sender = session.stand_ins[other].get(tuple(addr[:2]))
-        direction = "down" if self.side == "client" else "up"
-        shaped = session.proxy._directions[direction]
-        if sender is None:
+        if sender is None:      # e.g. the server's first checks, before its answer came back through the link
             session.proxy.unknown_datagrams += 1
             return
         session.last_datagram = asyncio.get_running_loop().time()
         route = sender._routes.get(self.real)
         if route is None:
             route = sender._routes[self.real] = _Route(sender, self.real)
+        shaped = session.proxy._directions["down" if self.side == "client" else "up"]
         shaped.submit(route, data, session.last_datagram)
 
     def close(self) -> None:
