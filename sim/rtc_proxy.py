@@ -28,6 +28,7 @@ import asyncio
 import ipaddress
 import json
 import logging
+import socket
 
 from quadcast.sim.link import LinkModel
 from quadcast.sim.proxy import DEFAULT_MAX_QUEUE_BYTES, ProxyStats, ShapedDirection
@@ -36,6 +37,9 @@ from quadcast.transport.webrtc import error_body, http_response, parse_descripti
 __all__ = ["RtcLinkProxy", "candidate_addresses", "rewrite_candidates"]
 
 log = logging.getLogger("quadcast.rtc_proxy")
+
+SOCKET_BUFFER_BYTES = 4 << 20
+"""Receive and send buffer asked for each stand-in socket (the kernel caps it at net.core.rmem_max / wmem_max)."""
 
 
 def _ipv4(host: str) -> bool:
@@ -121,6 +125,13 @@ class _StandIn(asyncio.DatagramProtocol):
     def connection_made(self, transport) -> None:
         self.transport = transport
         self.address = transport.get_extra_info("sockname")[:2]
+        sock = transport.get_extra_info("socket")
+        if sock is not None:      # a frame is a burst of hundreds of datagrams: the kernel must not drop them first
+            for option in (socket.SO_RCVBUF, socket.SO_SNDBUF):
+                try:
+                    sock.setsockopt(socket.SOL_SOCKET, option, SOCKET_BUFFER_BYTES)
+                except OSError:
+                    pass
 
     def datagram_received(self, data: bytes, addr) -> None:
         # sent to the stand-in of a `side` address, so it came from the other side: it leaves from the stand-in

@@ -89,6 +89,7 @@ def test_two_local_peers_deliver_decodable_video_and_quads(tapped, in_band, monk
             for k in range(3):
                 await ch.send(PoseUpdate(k, k / 30, [0, 1.6, 0], [0, 0, 0, 1]))
             await ch.send(ReferenceRequest("test"))
+            sockets = webrtc.enlarge_socket_buffers(ch.pc)
             while len(frames) < len(sent):
                 msg = await asyncio.wait_for(ch.recv(), 20)
                 assert isinstance(msg, Frame), msg
@@ -96,12 +97,17 @@ def test_two_local_peers_deliver_decodable_video_and_quads(tapped, in_band, monk
             await ch.send(Bye())
             await asyncio.sleep(0.3)
             await ch.close()
-            return welcome, frames, ch.bytes_in, (ch.access_units_tapped, ch.frames_in_band)
+            return welcome, frames, ch.bytes_in, (ch.access_units_tapped, ch.frames_in_band), sockets
         finally:
             await listener.close()
 
-    welcome, frames, bytes_in, modes = asyncio.run(asyncio.wait_for(main(), 90))
+    welcome, frames, bytes_in, modes, sockets = asyncio.run(asyncio.wait_for(main(), 90))
     assert modes == (tapped, in_band) and server_in_band == [in_band]
+    # the peer connection's UDP sockets and aiortc's RTP history were found where they are looked for
+    import aiortc.rtcrtpreceiver
+    import aiortc.rtcrtpsender
+    assert sockets >= 1
+    assert aiortc.rtcrtpsender.RTP_HISTORY_SIZE == aiortc.rtcrtpreceiver.RTP_HISTORY_SIZE == webrtc.RTP_HISTORY_PACKETS
     assert welcome == Welcome(1, 30.0)
     assert [f.frame_id for f in frames] == [p.frame_id for p in sent]
     assert bytes_in >= sum(len(p.geometry) for p in sent)

@@ -57,6 +57,7 @@ import json
 import logging
 import math
 import queue
+import socket
 import ssl as _ssl
 import time
 from dataclasses import dataclass
@@ -72,7 +73,7 @@ from quadcast.transport.channel import Channel, ServerBusy
 __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
            "AccessUnitTap", "tap_access_units", "access_unit_with_frame", "frame_in_access_unit",
            "read_http_message", "http_response", "error_body", "parse_description", "CHUNK_BYTES", "REENCODE_CRF",
-           "FRAMES_IN_BAND", "FRAMES_UUID"]
+           "FRAMES_IN_BAND", "FRAMES_UUID", "enlarge_socket_buffers", "keep_rtp_history"]
 
 log = logging.getLogger("quadcast.webrtc")
 
@@ -171,6 +172,52 @@ def frame_in_access_unit(access_unit: bytes) -> bytes:
     if rest is None:
         raise ProtocolError(f"an access unit of {len(access_unit)} bytes carries no frame")
     return join_video(rest, video)
+
+
+SOCKET_BUFFER_BYTES = 4 << 20
+"""Receive and send buffer asked for each of a peer connection's UDP sockets (the kernel caps it at
+net.core.rmem_max / wmem_max; Linux's default, about 208 kB, is less than one 960x540 reference frame's burst)."""
+
+
+RTP_HISTORY_PACKETS = 1024
+"""RTP packets aiortc's sender keeps for retransmission, and the span its receiver asks for lost ones in (aiortc's
+own 128 is less than one 960x540 reference frame: a NACK for one of a frame's first packets comes back after the
+whole frame was sent, and found nothing to resend)."""
+
+
+def keep_rtp_history(packets: int = RTP_HISTORY_PACKETS) -> None:
+    """Raise aiortc's ``RTP_HISTORY_SIZE`` (a module constant its sender and receiver read on every packet) to
+    ``packets`` in this process: every aiortc peer connection of the process keeps that much. A process-wide
+    setting, made by :class:`WebRtcListener` and :func:`open_webrtc_channel`; nothing happens if this aiortc has
+    no such constant."""
+    import aiortc.rtcrtpreceiver
+    import aiortc.rtcrtpsender
+    for module in (aiortc.rtcrtpsender, aiortc.rtcrtpreceiver):
+        if isinstance(getattr(module, "RTP_HISTORY_SIZE", None), int) and module.RTP_HISTORY_SIZE < packets:
+            module.RTP_HISTORY_SIZE = packets
+
+
+def enlarge_socket_buffers(pc, nbytes: int = SOCKET_BUFFER_BYTES) -> int:
+    """Ask for ``nbytes`` of receive and send buffer on the UDP sockets of ``pc``'s ICE transports, so a frame's
+    burst of RTP packets is not dropped by the kernel before aiortc reads it (aiortc paces nothing and leaves the
+    buffers at the system default). Best effort, through aioice's connection of each transport (not a public API):
+    how many sockets were set."""
+    done = set()
+    for transceiver in pc.getTransceivers():
+        for end in (transceiver.receiver, transceiver.sender):
+            ice = getattr(getattr(end, "transport", None), "transport", None)
+            for protocol in getattr(getattr(ice, "_connection", None), "_protocols", []):
+                transport = getattr(protocol, "transport", None)
+                sock = transport.get_extra_info("socket") if transport is not None else None
+                if sock is None or sock.fileno() in done:
+                    continue
+                try:
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, nbytes)
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, nbytes)
+                except OSError:
+                    continue
+                done.add(sock.fileno())
+    return len(done)
 
 
 class AccessUnitTap(queue.Queue):
@@ -527,6 +574,7 @@ class WebRtcListener:
         return self._server.sockets[0].getsockname()[1]
 
     async def start(self) -> None:
+        keep_rtp_history()
         self._server = await asyncio.start_server(self._on_http, self.host, self.requested_port)
 
     async def close(self) -> None:
@@ -635,6 +683,7 @@ class WebRtcListener:
                 return
             channel = WebRtcChannel(pc, channels, self.max_message_bytes, video_out=track, peer=peer)
             channel.frames_in_band = in_band
+            enlarge_socket_buffers(pc)
             try:
                 await self.on_channel(channel)
             finally:
@@ -683,6 +732,7 @@ async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, time
     client ``ssl`` context; ``token`` as a bearer token), wait until the data channels are open. Raises
     :class:`ServerBusy` when the server has no room, PermissionError when it refuses the token."""
     _, RTCPeerConnection, RTCSessionDescription = _pc_classes()
+    keep_rtp_history()
     pc = RTCPeerConnection(ice_configuration(stun))
     try:
         channels = {"control": pc.createDataChannel("control"),
@@ -718,6 +768,8 @@ async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, time
                 raise ConnectionError(f"WebRTC to {host}:{port}: data channels did not open within {timeout:g} s "
                                       f"(connection {pc.connectionState})")
             await asyncio.sleep(0.02)
+        if not enlarge_socket_buffers(pc):
+            log.info("webrtc %s:%d: the UDP sockets' buffers were left at the system default", host, port)
         return channel
     except BaseException:
         with contextlib.suppress(Exception):
