@@ -39,7 +39,8 @@ from quadcast.protocol.messages import DEFAULT_MAX_MESSAGE_BYTES, MessageSplitte
 from quadcast.sim.link import LinkModel, parse_duration_ms, parse_loss, parse_rate_mbit
 from quadcast.sim.ratetrace import RateTrace
 
-__all__ = ["DEFAULT_MAX_QUEUE_BYTES", "DirectionStats", "LinkProxy", "ProxyStats", "ShapedDirection", "parse_link_args"]
+__all__ = ["DEFAULT_MAX_QUEUE_BYTES", "DirectionStats", "LinkProxy", "ProxyStats", "ShapedDirection", "ShapedProxy",
+           "parse_link_args", "start_directions"]
 
 log = logging.getLogger("quadcast.proxy")
 
@@ -84,6 +85,21 @@ class ProxyStats:
     connections_open: int = 0
     upstream_failures: int = 0    # the target refused / could not be reached
     framing_errors: int = 0       # connections closed because a stream was not valid framing
+
+
+def start_directions(up: LinkModel, down: LinkModel, max_queue_bytes: int, stats: ProxyStats,
+                     name: str) -> dict[str, "ShapedDirection"]:
+    """A proxy's two shaped directions (``up``: client -> target), their rate traces starting now and their delivery
+    tasks (named ``name-up`` and ``name-down``) running."""
+    now = asyncio.get_running_loop().time()
+    for link in (up, down):        # a rate trace starts with the proxy
+        if link.rate_trace is not None:
+            link.trace_start = now
+    directions = {"up": ShapedDirection("up", up, max_queue_bytes, stats.up),
+                  "down": ShapedDirection("down", down, max_queue_bytes, stats.down)}
+    for d in directions.values():
+        d.task = asyncio.create_task(d.run(), name=f"{name}-{d.name}")
+    return directions
 
 
 class ShapedDirection:
@@ -247,43 +263,37 @@ class _Connection:
                 t.cancel()
 
 
-class LinkProxy:
-    """An asyncio TCP proxy shaping each direction with its own :class:`quadcast.sim.link.LinkModel`.
+class ShapedProxy:
+    """What both proxies share (:class:`LinkProxy` here, :class:`quadcast.sim.rtc_proxy.RtcLinkProxy`): a listening
+    socket, a target, the two shaped directions and the counters. A subclass has ``_on_accept`` (the listening
+    socket's connection handler) and ``close``; ``listen_port=0`` picks a free port (see :attr:`port`). Use ``await
+    start()`` / ``await close()`` or ``async with``."""
 
-    ``up`` shapes client -> target, ``down`` target -> client. ``listen_port=0`` picks a free port (see
-    :attr:`port`). Use ``await start()`` / ``await close()`` or ``async with``. :attr:`stats` counts messages and
-    bytes forwarded and dropped per direction.
-    """
+    task_name = "proxy-link"
 
     def __init__(self, listen_host: str, listen_port: int, target_host: str, target_port: int,
-                 up: LinkModel, down: LinkModel, *, max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES,
-                 max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, connect_timeout: float = 5.0,
-                 half_close_timeout: float = 2.0) -> None:
+                 up: LinkModel, down: LinkModel, max_queue_bytes: int) -> None:
+        name = type(self).__name__
         if not isinstance(up, LinkModel) or not isinstance(down, LinkModel):
-            raise TypeError(f"LinkProxy: up and down must be LinkModel instances, got "
+            raise TypeError(f"{name}: up and down must be LinkModel instances, got "
                             f"{type(up).__name__} and {type(down).__name__}")
         if up is down:
-            raise ValueError("LinkProxy: up and down must be two different LinkModel instances")
+            raise ValueError(f"{name}: up and down must be two different LinkModel instances")
         if max_queue_bytes <= 0:
-            raise ValueError(f"LinkProxy: max_queue_bytes must be > 0, got {max_queue_bytes}")
+            raise ValueError(f"{name}: max_queue_bytes must be > 0, got {max_queue_bytes}")
         self.listen_host, self.listen_port = listen_host, int(listen_port)
         self.target_host, self.target_port = target_host, int(target_port)
         self.up, self.down = up, down
         self.max_queue_bytes = int(max_queue_bytes)
-        self.max_message_bytes = int(max_message_bytes)
-        self.connect_timeout = float(connect_timeout)
-        self.half_close_timeout = float(half_close_timeout)
         self.stats = ProxyStats()
         self._server: asyncio.AbstractServer | None = None
         self._directions: dict[str, ShapedDirection] = {}
-        self._connections: set[_Connection] = set()
-        self._handlers: set[asyncio.Task] = set()
 
     @property
     def port(self) -> int:
         """The port actually listened on (useful with ``listen_port=0``)."""
         if self._server is None:
-            raise RuntimeError("LinkProxy.port: the proxy is not started")
+            raise RuntimeError(f"{type(self).__name__}.port: the proxy is not started")
         return self._server.sockets[0].getsockname()[1]
 
     @property
@@ -292,18 +302,18 @@ class LinkProxy:
         return f"{self.listen_host}:{port}->{self.target_host}:{self.target_port}"
 
     async def start(self) -> None:
-        """Start listening; returns once the socket is bound."""
+        """Start the two directions and listen; returns once the socket is bound."""
         if self._server is not None:
-            raise RuntimeError("LinkProxy.start: already started")
-        for link in (self.up, self.down):        # a rate trace starts with the proxy
-            if link.rate_trace is not None:
-                link.trace_start = asyncio.get_running_loop().time()
-        self._directions = {"up": ShapedDirection("up", self.up, self.max_queue_bytes, self.stats.up),
-                            "down": ShapedDirection("down", self.down, self.max_queue_bytes, self.stats.down)}
-        for d in self._directions.values():
-            d.task = asyncio.create_task(d.run(), name=f"proxy-link-{d.name}")
-        self._server = await asyncio.start_server(self._on_client, self.listen_host, self.listen_port)
-        log.info("proxy %s: listening (up: %r, down: %r)", self.address, self.up, self.down)
+            raise RuntimeError(f"{type(self).__name__}.start: already started")
+        self._directions = start_directions(self.up, self.down, self.max_queue_bytes, self.stats, self.task_name)
+        self._server = await asyncio.start_server(self._on_accept, self.listen_host, self.listen_port)
+        log.info("%s %s: listening (up: %r, down: %r)", self.task_name, self.address, self.up, self.down)
+
+    async def _on_accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        raise NotImplementedError
+
+    async def close(self) -> None:
+        raise NotImplementedError
 
     async def serve_forever(self) -> None:
         """Start (if needed) and run until cancelled; closes on the way out."""
@@ -313,6 +323,32 @@ class LinkProxy:
             await self._server.serve_forever()
         finally:
             await self.close()
+
+    async def __aenter__(self):
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+
+class LinkProxy(ShapedProxy):
+    """An asyncio TCP proxy shaping each direction with its own :class:`quadcast.sim.link.LinkModel`.
+
+    ``up`` shapes client -> target, ``down`` target -> client. :attr:`stats` counts messages and bytes forwarded
+    and dropped per direction.
+    """
+
+    def __init__(self, listen_host: str, listen_port: int, target_host: str, target_port: int,
+                 up: LinkModel, down: LinkModel, *, max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES,
+                 max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, connect_timeout: float = 5.0,
+                 half_close_timeout: float = 2.0) -> None:
+        super().__init__(listen_host, listen_port, target_host, target_port, up, down, max_queue_bytes)
+        self.max_message_bytes = int(max_message_bytes)
+        self.connect_timeout = float(connect_timeout)
+        self.half_close_timeout = float(half_close_timeout)
+        self._connections: set[_Connection] = set()
+        self._handlers: set[asyncio.Task] = set()
 
     async def close(self) -> None:
         """Stop listening, close every proxied connection and stop the link tasks."""
@@ -330,14 +366,7 @@ class LinkProxy:
         if server is not None:
             await server.wait_closed()
 
-    async def __aenter__(self) -> "LinkProxy":
-        await self.start()
-        return self
-
-    async def __aexit__(self, *exc) -> None:
-        await self.close()
-
-    async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    async def _on_accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
         self._handlers.add(task)
         self.stats.connections_accepted += 1

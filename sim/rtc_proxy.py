@@ -31,7 +31,7 @@ import logging
 import socket
 
 from quadcast.sim.link import LinkModel
-from quadcast.sim.proxy import DEFAULT_MAX_QUEUE_BYTES, ProxyStats, ShapedDirection
+from quadcast.sim.proxy import DEFAULT_MAX_QUEUE_BYTES, ShapedProxy
 from quadcast.transport.webrtc import error_body, http_response, parse_description, read_http_message
 
 __all__ = ["RtcLinkProxy", "candidate_addresses", "rewrite_candidates"]
@@ -89,7 +89,8 @@ def rewrite_candidates(sdp: str, stand_ins: dict[tuple[str, int], tuple[str, int
 
 
 class _Route:
-    """Datagrams from one stand-in to one real address: the sink a :class:`ShapedDirection` delivers to."""
+    """Datagrams from one stand-in to one real address: the sink a
+    :class:`quadcast.sim.proxy.ShapedDirection` delivers to."""
 
     def __init__(self, stand_in: "_StandIn", dest: tuple[str, int]) -> None:
         self.stand_in, self.dest = stand_in, dest
@@ -179,76 +180,42 @@ class _Session:
                 stand_in.close()
 
 
-class RtcLinkProxy:
+class RtcLinkProxy(ShapedProxy):
     """Signalling proxy and UDP relay shaping a WebRTC session's datagrams (see the module docstring).
 
-    ``up`` shapes client -> server, ``down`` server -> client. ``listen_port=0`` picks a free port (:attr:`port`).
-    :attr:`stats` counts datagrams (``messages_*``) per direction, signalling requests (``connections_accepted``),
-    sessions with open stand-ins (``connections_open``), requests the server could not be asked
-    (``upstream_failures``) and refused requests (``framing_errors``).
+    ``up`` shapes client -> server, ``down`` server -> client. :attr:`stats` counts datagrams (``messages_*``) per
+    direction, signalling requests (``connections_accepted``), sessions with open stand-ins (``connections_open``),
+    requests the server could not be asked (``upstream_failures``) and refused requests (``framing_errors``).
     """
+
+    task_name = "rtc-link"
 
     def __init__(self, listen_host: str, listen_port: int, target_host: str, target_port: int,
                  up: LinkModel, down: LinkModel, *, max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES,
                  request_timeout: float = 15.0, idle_timeout: float = 30.0, max_sessions: int = 16,
                  max_candidates: int = 16) -> None:
-        if not isinstance(up, LinkModel) or not isinstance(down, LinkModel) or up is down:
-            raise TypeError("RtcLinkProxy: up and down must be two different LinkModel instances")
+        super().__init__(listen_host, listen_port, target_host, target_port, up, down, max_queue_bytes)
         if not _ipv4(listen_host):
             raise ValueError(f"RtcLinkProxy: the listen host must be an IPv4 address (the stand-ins bind there), "
                              f"got {listen_host!r}")
-        if max_queue_bytes <= 0 or max_sessions < 1 or max_candidates < 1:
-            raise ValueError("RtcLinkProxy: max_queue_bytes, max_sessions and max_candidates must be positive")
-        self.listen_host, self.listen_port = listen_host, int(listen_port)
-        self.target_host, self.target_port = target_host, int(target_port)
-        self.up, self.down = up, down
-        self.max_queue_bytes = int(max_queue_bytes)
+        if max_sessions < 1 or max_candidates < 1:
+            raise ValueError("RtcLinkProxy: max_sessions and max_candidates must be positive")
         self.request_timeout = float(request_timeout)
         self.idle_timeout = float(idle_timeout)
         self.max_sessions = int(max_sessions)
         self.max_candidates = int(max_candidates)
-        self.stats = ProxyStats()
         self.unknown_datagrams = 0        # from an address no description named: dropped
-        self._server: asyncio.AbstractServer | None = None
-        self._directions: dict[str, ShapedDirection] = {}
         self._sessions: set[_Session] = set()
         self._tasks: set[asyncio.Task] = set()
 
     @property
-    def port(self) -> int:
-        if self._server is None:
-            raise RuntimeError("RtcLinkProxy.port: the proxy is not started")
-        return self._server.sockets[0].getsockname()[1]
-
-    @property
     def address(self) -> str:
-        port = self.port if self._server is not None else self.listen_port
-        return f"{self.listen_host}:{port}->{self.target_host}:{self.target_port} (webrtc)"
+        return super().address + " (webrtc)"
 
     async def start(self) -> None:
-        if self._server is not None:
-            raise RuntimeError("RtcLinkProxy.start: already started")
-        loop = asyncio.get_running_loop()
-        for link in (self.up, self.down):
-            if link.rate_trace is not None:
-                link.trace_start = loop.time()
-        self._directions = {"up": ShapedDirection("up", self.up, self.max_queue_bytes, self.stats.up),
-                            "down": ShapedDirection("down", self.down, self.max_queue_bytes, self.stats.down)}
-        for d in self._directions.values():
-            d.task = asyncio.create_task(d.run(), name=f"rtc-link-{d.name}")
-            self._tasks.add(d.task)
-        janitor = asyncio.create_task(self._close_idle(), name="rtc-link-idle")
-        self._tasks.add(janitor)
-        self._server = await asyncio.start_server(self._on_request, self.listen_host, self.listen_port)
-        log.info("link %s: listening (up: %r, down: %r)", self.address, self.up, self.down)
-
-    async def serve_forever(self) -> None:
-        if self._server is None:
-            await self.start()
-        try:
-            await self._server.serve_forever()
-        finally:
-            await self.close()
+        await super().start()
+        self._tasks.update(d.task for d in self._directions.values())
+        self._tasks.add(asyncio.create_task(self._close_idle(), name="rtc-link-idle"))
 
     async def close(self) -> None:
         server, self._server = self._server, None
@@ -262,13 +229,6 @@ class RtcLinkProxy:
         await asyncio.gather(*tasks, return_exceptions=True)
         if server is not None:
             await server.wait_closed()
-
-    async def __aenter__(self) -> "RtcLinkProxy":
-        await self.start()
-        return self
-
-    async def __aexit__(self, *exc) -> None:
-        await self.close()
 
     def _end(self, session: _Session) -> None:
         if session in self._sessions:
@@ -293,7 +253,7 @@ class RtcLinkProxy:
             raise ValueError(f"the {kind} names {len(addrs)} candidate addresses (cap {self.max_candidates})")
         return desc
 
-    async def _on_request(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    async def _on_accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
         self._tasks.add(task)
         self.stats.connections_accepted += 1

@@ -11,10 +11,11 @@ import pytest
 pytest.importorskip("aiortc")
 
 from quadcast.protocol.frame import decode_frame_payload  # noqa: E402
-from quadcast.protocol.messages import PROTOCOL_VERSION, Bye, Frame, Hello, Welcome  # noqa: E402
+from quadcast.protocol.messages import PROTOCOL_VERSION, Bye, Hello, Welcome  # noqa: E402
 from quadcast.sim.proxy import parse_link_args  # noqa: E402
 from quadcast.sim.rtc_proxy import RtcLinkProxy, candidate_addresses, rewrite_candidates  # noqa: E402
 from quadcast.transport.webrtc import SignallingPolicy, WebRtcListener, open_webrtc_channel  # noqa: E402
+from webrtc_peers import http_request, quasar_payloads, receive_frames  # noqa: E402
 
 SDP = "\r\n".join([
     "v=0",
@@ -43,26 +44,8 @@ def test_candidates_are_replaced_by_their_stand_ins_and_the_rest_left_out():
         candidate_addresses("a=candidate:x 1 udp 5 192.0.2.2 notaport typ host\r\n")
 
 
-def _payloads(n: int, w: int = 160, h: int = 90):
-    from quadcast.methods import make_server
-    from quadcast.protocol.methods import MethodConfig
-    from quadcast.render.camera import Pose
-    from quadcast.render.renderer import DeferredRenderer
-    from quadcast.render.scene import load_scene
-    from quadcast.render.traces import resolve_trace
-    trace = resolve_trace("builtin:walk")
-    server = make_server("quasar", DeferredRenderer(load_scene("builtin:courtyard")),
-                         MethodConfig(width=w, height=h, reference_every=10))
-    out = []
-    for i in range(n):
-        p, q = trace.pose_at(trace.times[0] + i / 30)
-        out.append(server.encode(Pose(p, q), i / 30))
-    server.close()
-    return out
-
-
 def test_a_webrtc_session_runs_through_the_link_and_its_delay():
-    sent = _payloads(6)
+    sent = quasar_payloads(6)
     delay_ms = 40
 
     async def serve(channel):
@@ -87,11 +70,7 @@ def test_a_webrtc_session_runs_through_the_link_and_its_delay():
             await ch.send(Hello(PROTOCOL_VERSION, "quasar", 160, 90, 60.0, token="secret"))
             welcome = await asyncio.wait_for(ch.recv(), 20)
             round_trip = time.monotonic() - t0
-            frames = []
-            while len(frames) < len(sent):
-                msg = await asyncio.wait_for(ch.recv(), 20)
-                assert isinstance(msg, Frame), msg
-                frames.append(decode_frame_payload(msg.payload))
+            frames = await receive_frames(ch, len(sent))
             await ch.send(Bye())
             await asyncio.sleep(0.2)
             await ch.close()
@@ -120,14 +99,6 @@ def test_the_link_refuses_a_bad_offer_without_asking_the_server():
     async def serve(channel):  # never reached
         asked.append(channel)
 
-    async def request(port: int, raw: bytes) -> bytes:
-        reader, writer = await asyncio.open_connection("127.0.0.1", port)
-        writer.write(raw)
-        await writer.drain()
-        data = await asyncio.wait_for(reader.read(), 10)
-        writer.close()
-        return data
-
     async def main():
         listener = WebRtcListener("127.0.0.1", 0, serve)
         await listener.start()
@@ -136,12 +107,12 @@ def test_the_link_refuses_a_bad_offer_without_asking_the_server():
         await link.start()
         try:
             body = b'{"type": "offer", "sdp": 5}'
-            bad_json = await request(link.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
+            bad_json = await http_request(link.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
                                      % (len(body), body))
-            wrong_path = await request(link.port, b"GET / HTTP/1.1\r\n\r\n")
+            wrong_path = await http_request(link.port, b"GET / HTTP/1.1\r\n\r\n")
             many = "\r\n".join(f"a=candidate:{i} 1 udp 1 192.0.2.{i} 5000 typ host" for i in range(1, 4))
             body = ('{"type": "offer", "sdp": "v=0\\r\\n%s\\r\\n"}' % many.replace("\r\n", "\\r\\n")).encode()
-            too_many = await request(link.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
+            too_many = await http_request(link.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
                                      % (len(body), body))
             return bad_json, wrong_path, too_many, link.stats
         finally:
@@ -158,7 +129,7 @@ def test_the_link_refuses_a_bad_offer_without_asking_the_server():
 def test_frames_cross_a_lossy_link_whole_or_not_at_all():
     """3% of datagrams lost each way: WebRTC's NACKs recover most frames, each frame that arrives is the one sent
     (its quads and its picture), in order, and the stream does not stall."""
-    sent = _payloads(30)
+    sent = quasar_payloads(30)
 
     async def serve(channel):
         await channel.recv()

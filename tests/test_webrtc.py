@@ -18,28 +18,10 @@ from quadcast.protocol.frame import decode_frame_payload  # noqa: E402
 from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, Frame, Hello, PoseUpdate, ReferenceRequest,  # noqa: E402
                                Welcome)
 from quadcast.protocol.quads import decode_quad_frame  # noqa: E402
-from quadcast.render.camera import Pose  # noqa: E402
 from quadcast.transport.webrtc import WebRtcListener, open_webrtc_channel  # noqa: E402
+from webrtc_peers import http_request, quasar_payloads, receive_frames  # noqa: E402
 
 W, H = 160, 90
-
-
-def _payloads(n: int):
-    """n QUASAR frames of builtin:walk at W x H (a reference, then residuals)."""
-    from quadcast.render.renderer import DeferredRenderer
-    from quadcast.render.scene import load_scene
-    from quadcast.methods import make_server
-    from quadcast.protocol.methods import MethodConfig
-    from quadcast.render.traces import resolve_trace
-    trace = resolve_trace("builtin:walk")
-    server = make_server("quasar", DeferredRenderer(load_scene("builtin:courtyard")),
-                         MethodConfig(width=W, height=H, reference_every=10))
-    out = []
-    for i in range(n):
-        p, q = trace.pose_at(trace.times[0] + i / 30)
-        out.append(server.encode(Pose(p, q), i / 30))
-    server.close()
-    return out
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -59,7 +41,7 @@ def test_two_local_peers_deliver_decodable_video_and_quads(tapped, in_band, monk
         async def older_server(self, offer, peer):
             return await accept(self, {k: v for k, v in offer.items() if k != "frames"}, peer)
         monkeypatch.setattr(webrtc.WebRtcListener, "_accept", older_server)
-    sent = _payloads(4)
+    sent = quasar_payloads(4)
     got_poses: list = []
     got_requests: list = []
 
@@ -85,15 +67,11 @@ def test_two_local_peers_deliver_decodable_video_and_quads(tapped, in_band, monk
             ch = await open_webrtc_channel("127.0.0.1", listener.port, 1 << 24, timeout=20)
             await ch.send(Hello(PROTOCOL_VERSION, "quasar", W, H, 60.0))
             welcome = await asyncio.wait_for(ch.recv(), 20)
-            frames = []
             for k in range(3):
                 await ch.send(PoseUpdate(k, k / 30, [0, 1.6, 0], [0, 0, 0, 1]))
             await ch.send(ReferenceRequest("test"))
             sockets = webrtc.enlarge_socket_buffers(ch.pc)
-            while len(frames) < len(sent):
-                msg = await asyncio.wait_for(ch.recv(), 20)
-                assert isinstance(msg, Frame), msg
-                frames.append(decode_frame_payload(msg.payload))
+            frames = await receive_frames(ch, len(sent))
             await ch.send(Bye())
             await asyncio.sleep(0.3)
             await ch.close()
@@ -139,25 +117,18 @@ def test_signalling_rejects_bad_requests():
     async def serve(channel):  # never reached
         raise AssertionError("no channel expected")
 
-    async def request(port: int, raw: bytes) -> bytes:
-        reader, writer = await asyncio.open_connection("127.0.0.1", port)
-        writer.write(raw)
-        await writer.drain()
-        data = await asyncio.wait_for(reader.read(), 10)
-        writer.close()
-        return data
-
     async def main():
         listener = WebRtcListener("127.0.0.1", 0, serve)
         await listener.start()
         try:
             body = b'{"type": "offer", "sdp": 5}'
-            bad_json = await request(listener.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
+            bad_json = await http_request(listener.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
                                      % (len(body), body))
-            wrong_path = await request(listener.port, b"GET / HTTP/1.1\r\n\r\n")
-            huge = await request(listener.port, b"POST /offer HTTP/1.1\r\nContent-Length: 99999999\r\n\r\n")
+            wrong_path = await http_request(listener.port, b"GET / HTTP/1.1\r\n\r\n")
+            huge = await http_request(listener.port,
+                                      b"POST /offer HTTP/1.1\r\nContent-Length: 99999999\r\n\r\n")
             bad_sdp_body = json.dumps({"type": "offer", "sdp": "v=0\r\nnot sdp"}).encode()
-            bad_sdp = await request(listener.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
+            bad_sdp = await http_request(listener.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
                                     % (len(bad_sdp_body), bad_sdp_body))
             return bad_json, wrong_path, huge, bad_sdp
         finally:
