@@ -32,14 +32,12 @@ import socket
 
 from quadcast.sim.link import LinkModel
 from quadcast.sim.proxy import DEFAULT_MAX_QUEUE_BYTES, ShapedProxy
-from quadcast.transport.webrtc import error_body, http_response, parse_description, read_http_message
+from quadcast.transport.webrtc import (SOCKET_BUFFER_BYTES, error_body, http_response, parse_description,
+                                      read_http_message)
 
 __all__ = ["RtcLinkProxy", "candidate_addresses", "rewrite_candidates"]
 
 log = logging.getLogger("quadcast.rtc_proxy")
-
-SOCKET_BUFFER_BYTES = 4 << 20
-"""Receive and send buffer asked for each stand-in socket (the kernel caps it at net.core.rmem_max / wmem_max)."""
 
 
 def _ipv4(host: str) -> bool:

@@ -73,7 +73,7 @@ from quadcast.transport.channel import Channel, ServerBusy
 __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
            "AccessUnitTap", "tap_access_units", "access_unit_with_frame", "frame_in_access_unit",
            "read_http_message", "http_response", "error_body", "parse_description", "CHUNK_BYTES", "REENCODE_CRF",
-           "FRAMES_IN_BAND", "FRAMES_UUID", "enlarge_socket_buffers", "keep_rtp_history"]
+           "FRAMES_IN_BAND", "FRAMES_UUID", "SOCKET_BUFFER_BYTES", "enlarge_socket_buffers", "keep_rtp_history"]
 
 log = logging.getLogger("quadcast.webrtc")
 
@@ -182,7 +182,7 @@ net.core.rmem_max / wmem_max; Linux's default, about 208 kB, is less than one 96
 RTP_HISTORY_PACKETS = 1024
 """RTP packets aiortc's sender keeps for retransmission, and the span its receiver asks for lost ones in (aiortc's
 own 128 is less than one 960x540 reference frame: a NACK for one of a frame's first packets comes back after the
-whole frame was sent, and found nothing to resend)."""
+whole frame was sent and finds nothing to resend)."""
 
 
 def keep_rtp_history(packets: int = RTP_HISTORY_PACKETS) -> None:
