@@ -60,14 +60,12 @@ def _candidate_fields(line: str) -> list[str] | None:
 
 def candidate_addresses(sdp: str) -> list[tuple[str, int]]:
     """The distinct (address, port) of the description's UDP IPv4 candidates, in order."""
-    out: list[tuple[str, int]] = []
+    out: dict[tuple[str, int], None] = {}      # ordered, and no quadratic search on a hostile description
     for line in sdp.splitlines():
         fields = _candidate_fields(line)
         if fields is not None and fields[2].lower() == "udp" and _ipv4(fields[4]):
-            addr = (fields[4], int(fields[5]))
-            if addr not in out:
-                out.append(addr)
-    return out
+            out.setdefault((fields[4], int(fields[5])))
+    return list(out)
 
 
 def rewrite_candidates(sdp: str, stand_ins: dict[tuple[str, int], tuple[str, int]]) -> str:
