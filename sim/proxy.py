@@ -40,7 +40,7 @@ from quadcast.sim.link import LinkModel, parse_duration_ms, parse_loss, parse_ra
 from quadcast.sim.ratetrace import RateTrace
 
 __all__ = ["DEFAULT_MAX_QUEUE_BYTES", "DirectionStats", "LinkProxy", "ProxyStats", "ShapedDirection", "ShapedProxy",
-           "parse_link_args", "start_directions"]
+           "parse_link_args"]
 
 log = logging.getLogger("quadcast.proxy")
 
@@ -85,21 +85,6 @@ class ProxyStats:
     connections_open: int = 0
     upstream_failures: int = 0    # the target refused / could not be reached
     framing_errors: int = 0       # connections closed because a stream was not valid framing
-
-
-def start_directions(up: LinkModel, down: LinkModel, max_queue_bytes: int, stats: ProxyStats,
-                     name: str) -> dict[str, "ShapedDirection"]:
-    """A proxy's two shaped directions (``up``: client -> target), their rate traces starting now and their delivery
-    tasks (named ``name-up`` and ``name-down``) running."""
-    now = asyncio.get_running_loop().time()
-    for link in (up, down):        # a rate trace starts with the proxy
-        if link.rate_trace is not None:
-            link.trace_start = now
-    directions = {"up": ShapedDirection("up", up, max_queue_bytes, stats.up),
-                  "down": ShapedDirection("down", down, max_queue_bytes, stats.down)}
-    for d in directions.values():
-        d.task = asyncio.create_task(d.run(), name=f"{name}-{d.name}")
-    return directions
 
 
 class ShapedDirection:
@@ -305,7 +290,13 @@ class ShapedProxy:
         """Start the two directions and listen; returns once the socket is bound."""
         if self._server is not None:
             raise RuntimeError(f"{type(self).__name__}.start: already started")
-        self._directions = start_directions(self.up, self.down, self.max_queue_bytes, self.stats, self.task_name)
+        for link in (self.up, self.down):        # a rate trace starts with the proxy
+            if link.rate_trace is not None:
+                link.trace_start = asyncio.get_running_loop().time()
+        self._directions = {"up": ShapedDirection("up", self.up, self.max_queue_bytes, self.stats.up),
+                            "down": ShapedDirection("down", self.down, self.max_queue_bytes, self.stats.down)}
+        for d in self._directions.values():
+            d.task = asyncio.create_task(d.run(), name=f"{self.task_name}-{d.name}")
         self._server = await asyncio.start_server(self._on_accept, self.listen_host, self.listen_port)
         log.info("%s %s: listening (up: %r, down: %r)", self.task_name, self.address, self.up, self.down)
 

@@ -28,11 +28,10 @@ import asyncio
 import ipaddress
 import json
 import logging
-import socket
 
 from quadcast.sim.link import LinkModel
 from quadcast.sim.proxy import DEFAULT_MAX_QUEUE_BYTES, ShapedProxy
-from quadcast.transport.webrtc import (SOCKET_BUFFER_BYTES, error_body, http_response, parse_description,
+from quadcast.transport.webrtc import (ask_socket_buffers, error_body, http_response, parse_description,
                                       read_http_message)
 
 __all__ = ["RtcLinkProxy", "candidate_addresses", "rewrite_candidates"]
@@ -58,13 +57,18 @@ def _candidate_fields(line: str) -> list[str] | None:
     return fields
 
 
+def _relayed_address(fields: list[str]) -> tuple[str, int] | None:
+    """The (address, port) of a candidate the link relays (UDP, IPv4), else None."""
+    return (fields[4], int(fields[5])) if fields[2].lower() == "udp" and _ipv4(fields[4]) else None
+
+
 def candidate_addresses(sdp: str) -> list[tuple[str, int]]:
     """The distinct (address, port) of the description's UDP IPv4 candidates, in order."""
     out: dict[tuple[str, int], None] = {}      # ordered, and no quadratic search on a hostile description
     for line in sdp.splitlines():
         fields = _candidate_fields(line)
-        if fields is not None and fields[2].lower() == "udp" and _ipv4(fields[4]):
-            out.setdefault((fields[4], int(fields[5])))
+        if fields is not None and (addr := _relayed_address(fields)) is not None:
+            out.setdefault(addr)
     return list(out)
 
 
@@ -75,7 +79,7 @@ def rewrite_candidates(sdp: str, stand_ins: dict[tuple[str, int], tuple[str, int
     for line in sdp.splitlines():
         fields = _candidate_fields(line)
         if fields is not None:
-            addr = (fields[4], int(fields[5])) if fields[2].lower() == "udp" and _ipv4(fields[4]) else None
+            addr = _relayed_address(fields)
             if addr not in stand_ins:
                 continue
             fields[4], fields[5] = stand_ins[addr][0], str(stand_ins[addr][1])
@@ -124,11 +128,7 @@ class _StandIn(asyncio.DatagramProtocol):
         self.address = transport.get_extra_info("sockname")[:2]
         sock = transport.get_extra_info("socket")
         if sock is not None:      # a frame is a burst of hundreds of datagrams: the kernel must not drop them first
-            for option in (socket.SO_RCVBUF, socket.SO_SNDBUF):
-                try:
-                    sock.setsockopt(socket.SOL_SOCKET, option, SOCKET_BUFFER_BYTES)
-                except OSError:
-                    pass
+            ask_socket_buffers(sock)
 
     def datagram_received(self, data: bytes, addr) -> None:
         # sent to the stand-in of a `side` address, so it came from the other side: it leaves from the stand-in

@@ -73,7 +73,8 @@ from quadcast.transport.channel import Channel, ServerBusy
 __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
            "AccessUnitTap", "tap_access_units", "access_unit_with_frame", "frame_in_access_unit",
            "read_http_message", "http_response", "error_body", "parse_description", "CHUNK_BYTES", "REENCODE_CRF",
-           "FRAMES_IN_BAND", "FRAMES_UUID", "SOCKET_BUFFER_BYTES", "enlarge_socket_buffers", "keep_rtp_history"]
+           "FRAMES_IN_BAND", "FRAMES_UUID", "SOCKET_BUFFER_BYTES", "ask_socket_buffers",
+           "enlarge_socket_buffers", "keep_rtp_history"]
 
 log = logging.getLogger("quadcast.webrtc")
 
@@ -197,6 +198,16 @@ def keep_rtp_history(packets: int = RTP_HISTORY_PACKETS) -> None:
             module.RTP_HISTORY_SIZE = packets
 
 
+def ask_socket_buffers(sock: socket.socket, nbytes: int = SOCKET_BUFFER_BYTES) -> bool:
+    """Ask for ``nbytes`` of receive and send buffer on ``sock``; False if the kernel refused."""
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, nbytes)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, nbytes)
+    except OSError:
+        return False
+    return True
+
+
 def enlarge_socket_buffers(pc, nbytes: int = SOCKET_BUFFER_BYTES) -> int:
     """Ask for ``nbytes`` of receive and send buffer on the UDP sockets of ``pc``'s ICE transports, so a frame's
     burst of RTP packets is not dropped by the kernel before aiortc reads it (aiortc paces nothing and leaves the
@@ -209,14 +220,8 @@ def enlarge_socket_buffers(pc, nbytes: int = SOCKET_BUFFER_BYTES) -> int:
             for protocol in getattr(getattr(ice, "_connection", None), "_protocols", []):
                 transport = getattr(protocol, "transport", None)
                 sock = transport.get_extra_info("socket") if transport is not None else None
-                if sock is None or sock.fileno() in done:
-                    continue
-                try:
-                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, nbytes)
-                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, nbytes)
-                except OSError:
-                    continue
-                done.add(sock.fileno())
+                if sock is not None and sock.fileno() not in done and ask_socket_buffers(sock, nbytes):
+                    done.add(sock.fileno())
     return len(done)
 
 
