@@ -41,6 +41,10 @@ __all__ = ["TARGETS", "FuzzResult", "fuzz_target", "run_fuzz", "main"]
 HANG_S = 1.0
 """An input that takes longer than this counts as a hang."""
 
+RETIME_S = 0.05
+"""An input that took longer than this is run twice more and counts at its fastest run: on a shared machine one slow
+run is often a garbage collection or another process, and the figure that matters is an input slow every time."""
+
 SIZE = (64, 36)
 """The session size the blob decoders are given (what a client asked for)."""
 
@@ -324,7 +328,7 @@ def fuzz_target(name: str, examples: int, seed: int = 0) -> FuzzResult:
             if len(result.examples) < 3:
                 result.examples.append(f"input {data[:200]!r}...\n{traceback.format_exc()}")
         elapsed = time.perf_counter() - t0
-        if elapsed > HANG_S:   # wall clock on a shared machine: a hang is an input that is slow every time
+        if elapsed > RETIME_S:
             elapsed = min(elapsed, *(_timed(check, data, chunk) for _ in range(2)))
         result.slowest_s = max(result.slowest_s, elapsed)
         result.hangs += elapsed > HANG_S
