@@ -230,3 +230,46 @@ def test_frames_whose_data_channel_lags_the_video_track_are_still_paired():
     assert unpaired == 0
     assert [p.frame_id for p in out] == list(range(48))
     assert all(p.video == bytes([p.frame_id % 251]) * (500 + p.frame_id) for p in out)
+
+
+def test_frames_larger_than_aiortcs_jitter_buffer_arrive_whole():
+    """A frame of about 1,000 RTP packets (aiortc's own receiver holds 512, and lost every such frame): the client's
+    FrameReassembly hands it out whole, quads (in the access unit) and picture."""
+    import dataclasses
+    import os
+
+    from quadcast.transport.rtp_reassembly import FrameReassembly
+    sent = [dataclasses.replace(p, geometry=p.geometry + os.urandom(1_200_000) * (i == 0))
+            for i, p in enumerate(quasar_payloads(3))]
+
+    async def serve(channel):
+        await channel.recv()
+        await channel.send(Welcome(1, 30.0))
+        for payload in sent:
+            await channel.send_frame(payload)
+        while await channel.recv() is not None:
+            pass
+
+    async def main():
+        listener = WebRtcListener("127.0.0.1", 0, serve)
+        await listener.start()
+        try:
+            ch = await open_webrtc_channel("127.0.0.1", listener.port, 1 << 24, timeout=20)
+            buffers = [type(t.receiver._RTCRtpReceiver__jitter_buffer) for t in ch.pc.getTransceivers()]
+            await ch.send(Hello(PROTOCOL_VERSION, "quasar", W, H, 60.0))
+            await asyncio.wait_for(ch.recv(), 20)
+            frames = await receive_frames(ch, len(sent), timeout=30)
+            await ch.send(Bye())
+            await ch.close()
+            return buffers, ch.frames_in_band, frames
+        finally:
+            await listener.close()
+
+    buffers, in_band, frames = asyncio.run(asyncio.wait_for(main(), 90))
+    assert buffers == [FrameReassembly] and in_band
+    assert [f.frame_id for f in frames] == [p.frame_id for p in sent]
+    direct, one_stream = AtlasDecoder(), AtlasDecoder()
+    for original, received in zip(sent, frames):
+        assert received.geometry == original.geometry
+        np.testing.assert_array_equal(one_stream.decode(received.video, received.frame_id),
+                                      direct.decode(original.video, original.frame_id))

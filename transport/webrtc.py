@@ -21,7 +21,9 @@ Data channels carry the same length-prefixed wire messages as TCP, split into ch
 :class:`quadcast.protocol.messages.MessageDecoder` per channel.
 
 Receiving video: aiortc has no API for a received track's encoded frames; its receiver reassembles each access
-unit from the RTP packets (jitter buffer, NACKs) and queues it for a decoder thread. The client's channel puts
+unit from the RTP packets (jitter buffer, NACKs) and queues it for a decoder thread. The client replaces that
+jitter buffer with a :class:`~quadcast.transport.rtp_reassembly.FrameReassembly` (aiortc's holds 512 packets, less
+than a 1920x1080 reference frame, and scans itself on every packet), and puts
 :class:`AccessUnitTap` in place of that queue (:func:`tap_access_units`), so each access unit reaches the channel
 with the NAL units the server's encoder wrote (behind the access unit delimiter below, and without the frame's SEI,
 which the channel takes out) and the method client's own decoder, with its strict error detection, decodes it;
@@ -69,6 +71,7 @@ from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import join_video, peek_frame_id, split_index, split_video
 from quadcast.protocol.messages import Frame, Message, MessageDecoder, PoseUpdate, encode_message
 from quadcast.transport.channel import Channel, ServerBusy
+from quadcast.transport.rtp_reassembly import reassemble_in
 
 __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
            "AccessUnitTap", "tap_access_units", "access_unit_with_frame", "frame_in_access_unit",
@@ -180,10 +183,11 @@ SOCKET_BUFFER_BYTES = 4 << 20
 net.core.rmem_max / wmem_max; Linux's default, about 208 kB, is less than one 960x540 reference frame's burst)."""
 
 
-RTP_HISTORY_PACKETS = 1024
-"""RTP packets aiortc's sender keeps for retransmission, and the span its receiver asks for lost ones in (aiortc's
-own 128 is less than one 960x540 reference frame: a NACK for one of a frame's first packets comes back after the
-whole frame was sent and finds nothing to resend)."""
+RTP_HISTORY_PACKETS = 4096
+"""RTP packets aiortc's sender keeps for retransmission, and the span its receiver asks for lost ones in: a whole
+frame of the largest the client's reassembly holds (:data:`~quadcast.transport.rtp_reassembly.REASSEMBLY_PACKETS`).
+aiortc's own 128 is less than one 960x540 reference frame, so a NACK for one of a frame's first packets came back
+after the whole frame was sent and found nothing to resend."""
 
 
 def keep_rtp_history(packets: int = RTP_HISTORY_PACKETS) -> None:
@@ -750,6 +754,9 @@ async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, time
             raise RuntimeError("this aiortc build has no H.264 codec")
         video.setCodecPreferences(h264)   # the server sends our H.264 access units as they are
         channel = WebRtcChannel(pc, channels, max_message_bytes, peer=f"{host}:{port}")
+        if not reassemble_in(video.receiver):
+            log.warning("webrtc %s:%d: this aiortc (%s) keeps its own jitter buffer: frames of more than about "
+                        "600 kB are lost", host, port, _aiortc_version())
         if not channel.tap_video(video.receiver):
             log.warning("webrtc %s:%d: this aiortc (%s) does not let the channel take the video track's access "
                         "units; its decoded pictures are re-encoded (a generation of H.264 loss)", host, port,
