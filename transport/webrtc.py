@@ -71,6 +71,7 @@ from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import join_video, peek_frame_id, split_index, split_video
 from quadcast.protocol.messages import Frame, Message, MessageDecoder, PoseUpdate, encode_message
 from quadcast.transport.channel import Channel, ServerBusy
+from quadcast.transport.rtcp_limits import limit_retransmissions
 from quadcast.transport.rtp_reassembly import reassemble_in
 
 __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
@@ -675,12 +676,15 @@ class WebRtcListener:
         in_band = offer.get("frames") == FRAMES_IN_BAND       # the client takes access units: frames go in them
         try:
             await pc.setRemoteDescription(RTCSessionDescription(sdp=offer["sdp"], type="offer"))
-            pc.addTrack(track)
+            sender = pc.addTrack(track)
             await pc.setLocalDescription(await pc.createAnswer())
         except Exception as exc:
             self._pcs.discard(pc)
             await pc.close()
             raise ValueError(f"bad offer: {exc}") from None
+
+        if not limit_retransmissions(sender):
+            log.warning("webrtc %s: this aiortc (%s) answers NACKs without a limit", peer, _aiortc_version())
 
         async def session() -> None:
             try:
