@@ -67,6 +67,18 @@ def test_the_live_demo_runs_on_the_scene_and_trace_it_is_given(tmp_path, capsys)
     assert f"on {trace} in builtin:courtyard-static at 160x90" in out
 
 
+def test_the_live_demo_runs_over_webrtc(tmp_path, capsys):
+    """The same three processes speaking WebRTC: the link answers the client's offer and shapes the datagrams."""
+    view = DemoView(scene="builtin:courtyard-static", duration=1.0, size="160x90")
+    assert run_demo(tmp_path / "demo", quiet=True, view=view, compare=False, transport="webrtc") == 0
+    s = json.loads((tmp_path / "demo" / "client" / "summary.json").read_text())
+    assert s["transport"] == "webrtc" and s["server_frames"] >= 1 and s["frames"] >= 1
+    assert "over webrtc" in capsys.readouterr().out
+    assert "rtc-link" in (tmp_path / "demo" / "link.log").read_text()     # the WebRTC link, not the TCP proxy
+    with pytest.raises(ValueError, match="transport must be one of tcp, webrtc"):
+        run_demo(tmp_path / "demo2", view=view, compare=False, transport="quic")
+
+
 def test_what_the_demo_follows_is_checked_before_it_starts(tmp_path):
     walk = resolve_trace("builtin:walk")
     default = DemoView().resolved()

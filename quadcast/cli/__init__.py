@@ -10,7 +10,7 @@
     quadcast server   --port P [--method quasar] [--transport tcp|webrtc] [--host 127.0.0.1] [--token T]
     quadcast link     --listen P --to HOST:PORT --delay 20ms --jitter 10ms [--rate 200mbit] [--loss 0.5%]
     quadcast client   --connect HOST:PORT --trace T [--size WxH] [--duration S] [--transport tcp|webrtc] --out DIR
-    quadcast demo     [--out DIR]
+    quadcast demo     [--out DIR] [--transport tcp|webrtc]
 
 Each subcommand's --help says more. Errors in the user's input print one line naming what was wrong and exit 2.
 
@@ -325,7 +325,7 @@ def cmd_demo(args) -> int:
     view = DemoView(scene=args.scene, trace=args.trace, anchor=args.anchor, start=args.start, duration=args.duration,
                     size=args.size)
     return run_demo(Path(args.out), quiet=args.quiet, view=view, compare=not args.no_compare, client_nice=nice,
-                    client_cores=cores, warm_up=not args.no_warm_up)
+                    client_cores=cores, warm_up=not args.no_warm_up, transport=args.transport)
 
 
 # -------------------------------------------------------------------------------------------------- main
@@ -470,6 +470,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-warm-up", action="store_true",
                    help="neither the server's spare workers nor the client run made-up frames first (so that "
                         "llvmpipe compiles the shaders before the session's first frames need them)")
+    p.add_argument("--transport", choices=("tcp", "webrtc"), default="tcp",
+                   help="what server, link and client speak (webrtc: the link shapes every datagram between the "
+                        "peers; the virtual-time replays are the same either way)")
     p.set_defaults(func=cmd_demo)
 
     from quadcast.cli.live import add_live_commands

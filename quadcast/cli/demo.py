@@ -26,7 +26,7 @@ from pathlib import Path
 
 from quadcast.render.worker import die_with_parent
 
-__all__ = ["Child", "DemoView", "client_cpus", "quadcast_argv", "run_demo", "LISTENING"]
+__all__ = ["Child", "DemoView", "client_cpus", "quadcast_argv", "run_demo", "LISTENING", "TRANSPORTS"]
 
 LISTENING = re.compile(r"listening on ([0-9.]+|localhost):(\d+)")
 """What a ready server or link prints; group 2 is the port."""
@@ -175,6 +175,10 @@ rasterizer threads wait for each other: in alternating runs here the server sent
 7.3) instead of 7.3-7.5, and the client showed as many frames as before (docs/speed.md, stop 48)."""
 
 
+TRANSPORTS = ("tcp", "webrtc")
+"""What the demo's three processes may speak: TCP (the default) or WebRTC (``quadcast link --webrtc`` then shapes
+every datagram between the peers)."""
+
 DEMO_SECONDS = 10.0
 """How long the demo's client follows its trace unless told (or less, if the trace ends sooner)."""
 
@@ -239,13 +243,16 @@ def client_cpus(cores: int) -> set[int] | None:
 
 def run_demo(out: Path, quiet: bool = False, view: DemoView = DemoView(), record_every: int = 3,
              compare: bool = True, client_nice: int = CLIENT_NICE, client_cores: int = CLIENT_CORES,
-             warm_up: bool = True) -> int:
+             warm_up: bool = True, transport: str = "tcp") -> int:
     """Start server, link and client (the client `client_nice` below the others' priority, on `client_cores` of the
     machine's cores: `client_cpus`) on `view`'s scene and trace; print the client's figures and where the report
     is. With `compare`, then replay the same trace at the same size over the same link model in virtual time
     (:func:`virtual_twin`) and print both FLIPs: what the live system lost to this machine's speed; and once more
     with the server taking the live run's time per received frame: how much of that loss is the server's frame
-    rate. `warm_up` False passes ``--no-warm-up`` to server and client."""
+    rate. `warm_up` False passes ``--no-warm-up`` to server and client. `transport` is ``tcp`` or ``webrtc`` (the
+    server's, the link's and the client's; the virtual-time replays model neither)."""
+    if transport not in TRANSPORTS:
+        raise ValueError(f"transport must be one of {', '.join(TRANSPORTS)}, got {transport!r}")
     view = view.resolved()
     size, duration = view.size, view.duration
     out = Path(out)
@@ -259,18 +266,21 @@ def run_demo(out: Path, quiet: bool = False, view: DemoView = DemoView(), record
     try:
         t0 = time.monotonic()
         no_warm_up = () if warm_up else ("--no-warm-up",)
-        server = Child("server", quadcast_argv("server", "--scene", view.scene, "--port", 0, *no_warm_up, "-v"),
+        server = Child("server", quadcast_argv("server", "--scene", view.scene, "--port", 0, "--transport",
+                                               transport, *no_warm_up, "-v"),
                        out / "server.log", echo=not quiet)
         children.append(server)
         port = int(server.wait_for(LISTENING, 120).group(2))
         link = Child("link", quadcast_argv("link", "--listen", 0, "--to", f"127.0.0.1:{port}", "--delay", "20ms",
-                                           "--jitter", "10ms", "-v"), out / "link.log", echo=not quiet)
+                                           "--jitter", "10ms", *(["--webrtc"] if transport == "webrtc" else []),
+                                           "-v"), out / "link.log", echo=not quiet)
         children.append(link)
         link_port = int(link.wait_for(LISTENING, 60).group(2))
         client_out = out / "client"
         cpus = client_cpus(client_cores)
         client = Child("client", quadcast_argv("client", "--connect", f"127.0.0.1:{link_port}", *view.trace_args(),
-                                               "--size", size, "--duration", str(duration),
+                                               "--transport", transport, "--size", size, "--duration",
+                                               str(duration),
                                                "--record-every", record_every,
                                                "--label-latency", 20, "--label-jitter", 10, *no_warm_up,
                                                "--out", client_out),
@@ -282,7 +292,7 @@ def run_demo(out: Path, quiet: bool = False, view: DemoView = DemoView(), record
             return 1
         s = json.loads((client_out / "summary.json").read_text())
         print(f"demo: server, link (20±10 ms) and client ran as processes {server.pid}, {link.pid}, {client.pid} "
-              f"on 127.0.0.1, the client at nice {client_nice}"
+              f"on 127.0.0.1 over {transport}, the client at nice {client_nice}"
               f"{'' if cpus is None else ' on CPU ' + ','.join(map(str, sorted(cpus)))} "
               f"({time.monotonic() - t0:.0f} s)")
         print(f"demo: {s['method']} on {s['trace']} in {s['scene']} at {s['size']}, {s['duration_s']:.1f} s live: "
