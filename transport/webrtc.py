@@ -71,7 +71,7 @@ from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import join_video, peek_frame_id, split_index, split_video
 from quadcast.protocol.messages import Frame, Message, MessageDecoder, PoseUpdate, encode_message
 from quadcast.transport.channel import Channel, ServerBusy
-from quadcast.transport.rtcp_limits import limit_retransmissions
+from quadcast.transport.peer_limits import limit_retransmissions, limit_sctp_receive
 from quadcast.transport.rtp_reassembly import reassemble_in
 
 __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
@@ -685,6 +685,9 @@ class WebRtcListener:
 
         if not limit_retransmissions(sender):
             log.warning("webrtc %s: this aiortc (%s) answers NACKs without a limit", peer, _aiortc_version())
+        if not limit_sctp_receive(pc.sctp):
+            log.warning("webrtc %s: this aiortc (%s) keeps SCTP data past its receive window", peer,
+                        _aiortc_version())
 
         async def session() -> None:
             try:
@@ -751,6 +754,9 @@ async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, time
         channels = {"control": pc.createDataChannel("control"),
                     "poses": pc.createDataChannel("poses", ordered=False, maxRetransmits=0),
                     "frames": pc.createDataChannel("frames")}
+        if not limit_sctp_receive(pc.sctp):
+            log.warning("webrtc %s:%d: this aiortc (%s) keeps SCTP data past its receive window", host, port,
+                        _aiortc_version())
         from aiortc import RTCRtpReceiver
         video = pc.addTransceiver("video", direction="recvonly")
         h264 = [c for c in RTCRtpReceiver.getCapabilities("video").codecs if c.mimeType.lower() == "video/h264"]

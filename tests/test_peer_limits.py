@@ -1,5 +1,5 @@
-"""RetransmitBudget: a WebRTC client's NACKs get a bounded number of packets sent again, on a fake clock and between
-two real peers."""
+"""What a WebRTC peer can make the other side do: a client's NACKs get a bounded number of packets sent again, and a
+peer's SCTP data is held only up to the receive window (on stand-ins and between two real peers)."""
 from __future__ import annotations
 
 import asyncio
@@ -12,7 +12,8 @@ import pytest
 pytest.importorskip("aiortc")
 
 from quadcast.protocol.messages import PROTOCOL_VERSION, Bye, Hello, Welcome  # noqa: E402
-from quadcast.transport.rtcp_limits import RetransmitBudget, limit_retransmissions  # noqa: E402
+from quadcast.transport.peer_limits import (SCTP_MAX_MISORDERED, RetransmitBudget,  # noqa: E402
+                                           limit_retransmissions, limit_sctp_receive)
 from quadcast.transport.webrtc import WebRtcListener, open_webrtc_channel  # noqa: E402
 from webrtc_peers import quasar_payloads, receive_frames  # noqa: E402
 
@@ -131,3 +132,95 @@ def test_a_client_flooding_nacks_gets_a_bounded_number_of_packets_again():
     assert isinstance(budget, RetransmitBudget)
     assert budget.passed + budget.refused == 20 * 300 * 17          # every request reached the budget
     assert 1000 <= budget.passed <= budget.burst + budget.per_s * elapsed
+
+
+class _Association:
+    """Stands in for aiortc's SCTP association: what the limits read, and a receive that takes every chunk as
+    aiortc's does (the window shrinks by each chunk's data; a chunk past the next expected TSN is held)."""
+
+    def __init__(self, window: int = 10_000) -> None:
+        self._advertised_rwnd = window
+        self._sack_misordered: set[int] = set()
+        self._last_received_tsn = 99
+        self.taken: list[int] = []
+
+    async def _receive_data_chunk(self, chunk) -> None:
+        self.taken.append(chunk.tsn)
+        self._advertised_rwnd -= len(chunk.user_data)
+        if chunk.tsn == self._last_received_tsn + 1:
+            self._last_received_tsn = chunk.tsn
+        else:
+            self._sack_misordered.add(chunk.tsn)
+
+
+def _chunk(tsn: int, size: int = 1000):
+    from aiortc.rtcsctptransport import DataChunk
+    c = DataChunk()
+    c.tsn, c.stream_id, c.stream_seq, c.protocol, c.user_data = tsn, 1, 0, 51, b"x" * size
+    return c
+
+
+def test_sctp_chunks_past_the_window_or_empty_are_dropped():
+    sctp = _Association(window=3_500)
+    assert limit_sctp_receive(sctp) is True and limit_sctp_receive(sctp) is False    # not twice
+
+    async def send():
+        for tsn in range(100, 106):
+            await sctp._receive_data_chunk(_chunk(tsn))
+        await sctp._receive_data_chunk(_chunk(106, size=0))
+    asyncio.run(send())
+    assert sctp.taken == [100, 101, 102] and sctp._receive_data_chunk.dropped == [4]
+
+
+def test_sctp_chunks_ahead_of_a_gap_are_capped_but_the_gap_can_still_be_filled():
+    sctp = _Association(window=1 << 40)
+    limit_sctp_receive(sctp)
+
+    async def send():
+        for tsn in range(101, 101 + 2 * SCTP_MAX_MISORDERED):    # 100 is missing
+            await sctp._receive_data_chunk(_chunk(tsn, size=10))
+        await sctp._receive_data_chunk(_chunk(100, size=10))
+    asyncio.run(send())
+    assert len(sctp._sack_misordered) == SCTP_MAX_MISORDERED and sctp.taken[-1] == 100
+    assert limit_sctp_receive(object()) is False
+
+
+def test_a_peer_sending_a_message_that_never_ends_is_held_to_the_window():
+    """The client sends the server 5 MB of fragments of one message, never its last: aiortc's association alone
+    would keep all that arrives; with the limit it holds at most its 1 MiB window."""
+    from aiortc.rtcsctptransport import SCTP_DATA_FIRST_FRAG, DataChunk
+    held = {}
+
+    async def serve(channel):
+        held["sctp"] = channel.pc.sctp
+        await channel.recv()
+        await channel.send(Welcome(1, 30.0))
+        while await channel.recv() is not None:
+            pass
+
+    async def main():
+        listener = WebRtcListener("127.0.0.1", 0, serve)
+        await listener.start()
+        try:
+            ch = await open_webrtc_channel("127.0.0.1", listener.port, 1 << 24, timeout=20)
+            await ch.send(Hello(PROTOCOL_VERSION, "quasar", 160, 90, 60.0))
+            await asyncio.wait_for(ch.recv(), 20)
+            sctp, sid = ch.pc.sctp, ch.dc["control"].id
+            tsn = sctp._local_tsn
+            for i in range(5000):
+                c = DataChunk(flags=SCTP_DATA_FIRST_FRAG if i == 0 else 0)
+                c.tsn, c.stream_id, c.stream_seq, c.protocol, c.user_data = tsn, sid, 60000, 51, b"x" * 1000
+                tsn = (tsn + 1) & 0xFFFFFFFF
+                await sctp._send_chunk(c)
+                if i % 50 == 0:
+                    await asyncio.sleep(0.002)     # what the loopback's buffers take
+            await asyncio.sleep(0.5)
+            server = held["sctp"]
+            data = sum(len(c.user_data) for s in server._inbound_streams.values() for c in s.reassembly)
+            await ch.close()
+            return data, server._advertised_rwnd, getattr(server._receive_data_chunk, "dropped", [0])[0]
+        finally:
+            await listener.close()
+
+    data, window, dropped = asyncio.run(asyncio.wait_for(main(), 90))
+    assert data <= 1 << 20 and window >= 0 and dropped > 0
