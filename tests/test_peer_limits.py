@@ -224,3 +224,39 @@ def test_a_peer_sending_a_message_that_never_ends_is_held_to_the_window():
 
     data, window, dropped = asyncio.run(asyncio.wait_for(main(), 90))
     assert data <= 1 << 20 and window >= 0 and dropped > 0
+
+
+def test_data_channels_the_protocol_does_not_have_are_closed_by_the_server():
+    """A client opening 200 more data channels (unknown labels, and "control" again): the server's association keeps
+    only the protocol's three, and the session goes on."""
+    held = {}
+
+    async def serve(channel):
+        held["sctp"] = channel.pc.sctp
+        await channel.recv()
+        await channel.send(Welcome(1, 30.0))
+        while (msg := await channel.recv()) is not None:
+            if isinstance(msg, Hello):
+                await channel.send(Welcome(2, 30.0))
+
+    async def main():
+        listener = WebRtcListener("127.0.0.1", 0, serve)
+        await listener.start()
+        try:
+            ch = await open_webrtc_channel("127.0.0.1", listener.port, 1 << 24, timeout=20)
+            await ch.send(Hello(PROTOCOL_VERSION, "quasar", 160, 90, 60.0))
+            await asyncio.wait_for(ch.recv(), 20)
+            for i in range(200):
+                ch.pc.createDataChannel("control" if i == 0 else f"extra{i}")
+            await asyncio.sleep(1.5)
+            kept = len(held["sctp"]._data_channels)
+            await ch.send(Hello(PROTOCOL_VERSION, "quasar", 160, 90, 60.0))
+            again = await asyncio.wait_for(ch.recv(), 20)
+            await ch.send(Bye())
+            await ch.close()
+            return kept, again
+        finally:
+            await listener.close()
+
+    kept, again = asyncio.run(asyncio.wait_for(main(), 90))
+    assert kept == 3 and again == Welcome(2, 30.0)

@@ -665,12 +665,20 @@ class WebRtcListener:
         channels: dict = {}
         opened = asyncio.Event()
 
+        refused = [0]
+
         @pc.on("datachannel")
         def _on_dc(dc) -> None:
-            if dc.label in CHANNELS:
+            if dc.label in CHANNELS and dc.label not in channels:
                 channels[dc.label] = dc
                 if len(channels) == len(CHANNELS):
                     opened.set()
+                return
+            refused[0] += 1        # a label the protocol does not have, or one again: closed, not kept
+            if refused[0] & (refused[0] - 1) == 0:
+                log.info("webrtc %s: %d data channels closed (the last %r: not one of %s, or one again)", peer,
+                         refused[0], dc.label[:40], ", ".join(CHANNELS))
+            dc.close()
 
         track = _atlas_track_class()()
         in_band = offer.get("frames") == FRAMES_IN_BAND       # the client takes access units: frames go in them
