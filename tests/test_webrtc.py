@@ -46,6 +46,7 @@ def test_two_local_peers_deliver_decodable_video_and_quads(tapped, in_band, monk
     got_requests: list = []
 
     server_in_band: list = []
+    server_bytes_out: list = []
 
     async def serve(channel):
         server_in_band.append(channel.frames_in_band)
@@ -54,6 +55,7 @@ def test_two_local_peers_deliver_decodable_video_and_quads(tapped, in_band, monk
         await channel.send(Welcome(1, 30.0))
         for payload in sent:
             await channel.send_frame(payload)
+        server_bytes_out.append(channel.bytes_out)
         while True:
             msg = await channel.recv()
             if msg is None or isinstance(msg, Bye):
@@ -89,6 +91,9 @@ def test_two_local_peers_deliver_decodable_video_and_quads(tapped, in_band, monk
     assert welcome == Welcome(1, 30.0)
     assert [f.frame_id for f in frames] == [p.frame_id for p in sent]
     assert bytes_in >= sum(len(p.geometry) for p in sent)
+    # each frame's bytes counted once (an SEI and a delimiter add a little), whichever way its parts went
+    size = sum(p.size_bytes for p in sent)
+    assert size <= server_bytes_out[0] <= size * 1.01 + 100 * len(sent)
     for original, received in zip(sent, frames):
         # quads arrive byte for byte on the data channel and decode
         assert received.geometry == original.geometry

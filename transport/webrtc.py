@@ -465,8 +465,7 @@ class WebRtcChannel(Channel):
         self._video_index += 1
         rest, video = split_video(data, index)
         if self.frames_in_band:
-            video = access_unit_with_frame(rest, video)
-            self.bytes_out += len(rest)
+            video = access_unit_with_frame(rest, video)      # counted with the access unit, below
         else:
             self._send_bytes("frames", encode_message(Frame(rest)))
         for au, pts in ((video, index), (ACCESS_UNIT_DELIMITER, index + 1)):
