@@ -247,7 +247,10 @@ def test_frames_larger_than_aiortcs_jitter_buffer_arrive_whole():
     sent = [dataclasses.replace(p, geometry=p.geometry + os.urandom(1_200_000) * (i == 0))
             for i, p in enumerate(quasar_payloads(3))]
 
+    server_sends = []
+
     async def serve(channel):
+        server_sends.append(channel.pc.getTransceivers()[0].sender.transport._send_rtp)
         await channel.recv()
         await channel.send(Welcome(1, 30.0))
         for payload in sent:
@@ -272,9 +275,38 @@ def test_frames_larger_than_aiortcs_jitter_buffer_arrive_whole():
 
     buffers, in_band, frames = asyncio.run(asyncio.wait_for(main(), 90))
     assert buffers == [FrameReassembly] and in_band
+    assert server_sends[0].sent[0] >= 900        # the server's packets went through share_the_loop_while_sending
     assert [f.frame_id for f in frames] == [p.frame_id for p in sent]
     direct, one_stream = AtlasDecoder(), AtlasDecoder()
     for original, received in zip(sent, frames):
         assert received.geometry == original.geometry
         np.testing.assert_array_equal(one_stream.decode(received.video, received.frame_id),
                                       direct.decode(original.video, original.frame_id))
+
+
+def test_sending_a_frames_packets_lets_the_event_loop_run_other_work():
+    from quadcast.transport.webrtc import share_the_loop_while_sending
+
+    class Transport:
+        async def _send_rtp(self, data):
+            pass
+    transport = Transport()
+    assert share_the_loop_while_sending(transport, every=32) is True
+    assert share_the_loop_while_sending(transport) is False          # not twice
+    assert share_the_loop_while_sending(object()) is False
+
+    async def main():
+        ticks = []
+
+        async def other_session():
+            while True:
+                ticks.append(len(ticks))
+                await asyncio.sleep(0)
+        other = asyncio.ensure_future(other_session())
+        await asyncio.sleep(0)
+        before = len(ticks)
+        for _ in range(1000):                    # a 1920x1080 frame's packets, sent back to back
+            await transport._send_rtp(b"packet")
+        other.cancel()
+        return len(ticks) - before
+    assert asyncio.run(main()) >= 1000 // 32

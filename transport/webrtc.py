@@ -78,7 +78,7 @@ __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_c
            "AccessUnitTap", "tap_access_units", "access_unit_with_frame", "frame_in_access_unit",
            "read_http_message", "http_response", "error_body", "parse_description", "CHUNK_BYTES", "REENCODE_CRF",
            "FRAMES_IN_BAND", "FRAMES_UUID", "SOCKET_BUFFER_BYTES", "ask_socket_buffers",
-           "enlarge_socket_buffers", "keep_rtp_history"]
+           "enlarge_socket_buffers", "keep_rtp_history", "share_the_loop_while_sending", "SEND_YIELD_PACKETS"]
 
 log = logging.getLogger("quadcast.webrtc")
 
@@ -228,6 +228,31 @@ def enlarge_socket_buffers(pc, nbytes: int = SOCKET_BUFFER_BYTES) -> int:
                 if sock is not None and sock.fileno() not in done and ask_socket_buffers(sock, nbytes):
                     done.add(sock.fileno())
     return len(done)
+
+
+SEND_YIELD_PACKETS = 32
+"""RTP packets the server's peer connection sends before it lets the event loop run other work (see
+:func:`share_the_loop_while_sending`)."""
+
+
+def share_the_loop_while_sending(dtls_transport, every: int = SEND_YIELD_PACKETS) -> bool:
+    """Let the event loop run other work after every ``every`` RTP/RTCP packets that ``dtls_transport`` (an aiortc
+    ``RTCDtlsTransport``) sends. aiortc's sender encrypts and sends a frame's packets one after the other without
+    yielding, so a 1920x1080 frame of about 1,000 packets held the loop that serves every session for up to 58 ms.
+    False (nothing changed) where the transport has no ``_send_rtp`` or has this already."""
+    send = getattr(dtls_transport, "_send_rtp", None)
+    if not callable(send) or hasattr(send, "sent"):
+        return False
+    sent = [0]
+
+    async def send_and_yield(data: bytes) -> None:
+        await send(data)
+        sent[0] += 1
+        if sent[0] % every == 0:
+            await asyncio.sleep(0)
+    send_and_yield.sent = sent
+    dtls_transport._send_rtp = send_and_yield
+    return True
 
 
 class AccessUnitTap(queue.Queue):
@@ -690,6 +715,8 @@ class WebRtcListener:
             await pc.close()
             raise ValueError(f"bad offer: {exc}") from None
 
+        if not share_the_loop_while_sending(sender.transport):
+            log.warning("webrtc %s: this aiortc (%s) sends each frame without yielding", peer, _aiortc_version())
         if not limit_retransmissions(sender):
             log.warning("webrtc %s: this aiortc (%s) answers NACKs without a limit", peer, _aiortc_version())
         if not limit_sctp_receive(pc.sctp):
