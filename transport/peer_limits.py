@@ -28,7 +28,7 @@ import time
 from typing import Awaitable, Callable
 
 __all__ = ["RESEND_INTERVAL_S", "RESEND_PACKETS_PER_S", "RESEND_BURST", "RetransmitBudget",
-           "limit_retransmissions", "SCTP_MAX_MISORDERED", "limit_sctp_receive"]
+           "limit_retransmissions", "SCTP_MAX_MISORDERED", "limit_sctp_receive", "is_power_of_two"]
 
 log = logging.getLogger("quadcast.webrtc")
 
@@ -47,7 +47,7 @@ SCTP_MAX_MISORDERED = 1024
 """DATA chunks an SCTP association holds ahead of a gap (a window of 1 MiB holds about 900 full ones)."""
 
 
-def _every_power_of_two(count: int) -> bool:
+def is_power_of_two(count: int) -> bool:
     """Whether to log the ``count``-th time something happened: 1, 2, 4, 8, ... (a trace, not a flood of lines)."""
     return count & (count - 1) == 0
 
@@ -74,7 +74,7 @@ class RetransmitBudget:
         last = self._sent.get(sequence_number)
         if self.tokens < 1.0 or (last is not None and now - last < self.interval_s):
             self.refused += 1
-            if _every_power_of_two(self.refused):
+            if is_power_of_two(self.refused):
                 log.info("webrtc: %d retransmissions refused (budget %.0f packets/s, one per %.2f s a packet)",
                          self.refused, self.per_s, self.interval_s)
             return
@@ -113,7 +113,7 @@ def limit_sctp_receive(sctp) -> bool:
         if (size == 0 or size > sctp._advertised_rwnd
                 or (chunk.tsn != next_tsn and len(sctp._sack_misordered) >= SCTP_MAX_MISORDERED)):
             dropped[0] += 1
-            if _every_power_of_two(dropped[0]):
+            if is_power_of_two(dropped[0]):
                 log.info("webrtc: %d SCTP DATA chunks dropped (the last %d bytes; receive window %d bytes, %d "
                          "chunks held past a gap)", dropped[0], size, sctp._advertised_rwnd,
                          len(sctp._sack_misordered))

@@ -27,14 +27,14 @@ from typing import Callable
 __all__ = ["REASSEMBLY_PACKETS", "GIVE_UP_S", "MAX_MISORDER", "ReassembledFrame", "FrameReassembly",
            "reassemble_in"]
 
+log = logging.getLogger("quadcast.webrtc")
+
 REASSEMBLY_PACKETS = 4096
 """Packets held (a power of two): a frame of up to about 4.9 MB at aiortc's 1,200-byte packets."""
 
 GIVE_UP_S = 0.5
 """How long a frame may wait for a lost packet while newer packets arrive (a retransmission after a NACK takes a
 round trip) before it is dropped."""
-
-log = logging.getLogger("quadcast.webrtc")
 
 MAX_MISORDER = 100
 """A packet up to this many sequence numbers older than the oldest held is late and ignored; an older one means the

@@ -47,6 +47,11 @@ before any peer connection exists; at most ``max_peer_connections`` peer connect
 :class:`quadcast.protocol.admission.Admission` (pre-auth and per-address caps). Peer connections on both sides use
 no ICE server unless one is given (``stun``): aiortc's default is a public STUN server, so without this a server
 would reach out to the internet for every offer.
+
+What a peer can make the other side do is bounded where aiortc leaves it open (:mod:`quadcast.transport.peer_limits`):
+the server's retransmissions on a client's NACKs, SCTP data held past the receive window (both sides), and data
+channels beyond the three (the server closes them). The server's peer connections also let the event loop run while
+they send a frame's packets (:func:`share_the_loop_while_sending`).
 """
 from __future__ import annotations
 
@@ -71,7 +76,7 @@ from quadcast.protocol.errors import ProtocolError
 from quadcast.protocol.frame import join_video, peek_frame_id, split_index, split_video
 from quadcast.protocol.messages import Frame, Message, MessageDecoder, PoseUpdate, encode_message
 from quadcast.transport.channel import Channel, ServerBusy
-from quadcast.transport.peer_limits import limit_retransmissions, limit_sctp_receive
+from quadcast.transport.peer_limits import is_power_of_two, limit_retransmissions, limit_sctp_receive
 from quadcast.transport.rtp_reassembly import reassemble_in
 
 __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_channel", "ice_configuration",
@@ -699,7 +704,7 @@ class WebRtcListener:
                     opened.set()
                 return
             refused[0] += 1        # a label the protocol does not have, or one again: closed, not kept
-            if refused[0] & (refused[0] - 1) == 0:
+            if is_power_of_two(refused[0]):
                 log.info("webrtc %s: %d data channels closed (the last %r: not one of %s, or one again)", peer,
                          refused[0], dc.label[:40], ", ".join(CHANNELS))
             dc.close()

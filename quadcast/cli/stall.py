@@ -2,8 +2,9 @@
 
 Not a test (it measures wall-clock time). For each ``--worker`` kind it runs a :class:`quadcast.server.app.LiveServer` in
 this process with a 10 ms asyncio ticker on the same event loop, connects one ``quadcast client`` (a separate
-process) at ``--size`` for ``--duration`` seconds over ``--transport`` (tcp or webrtc), and reports the ticker's largest gap (and its 99th percentile)
-while the session ran: the longest time the loop could not read a pose or send a frame.
+process) at ``--size`` for ``--duration`` seconds over ``--transport`` (tcp or webrtc), and reports the ticker's
+largest gap (and its 99th percentile) while the session ran: the longest time the loop could not read a pose or send
+a frame.
 
     .venv/bin/python -m quadcast.cli.stall --size 1920x1080 --duration 8
 """
@@ -78,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     for worker in args.workers.split(","):
         r = asyncio.run(measure(worker, args.size, args.duration, args.scene, args.trace, args.transport))
-        print(f"{r['worker']:>7} ({args.transport}): event-loop max gap {r['max_gap_ms']:.0f} ms, p99 {r['p99_gap_ms']:.0f} ms "
+        print(f"{r['worker']:>7} ({args.transport}): event-loop max gap {r['max_gap_ms']:.0f} ms, p99 "
+              f"{r['p99_gap_ms']:.0f} ms "
               f"({TICK_S * 1e3:g} ms ticker, {r['ticks']} ticks during the session; {r['frames_encoded']} frames "
               f"encoded at {args.size}, mean {r['encode_ms']:.0f} ms; client exit {r['client_exit']})", flush=True)
     return 0
