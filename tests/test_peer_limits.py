@@ -11,11 +11,10 @@ import pytest
 
 pytest.importorskip("aiortc")
 
-from quadcast.protocol.messages import PROTOCOL_VERSION, Bye, Hello, Welcome  # noqa: E402
+from quadcast.protocol.messages import PoseUpdate, ReferenceRequest  # noqa: E402
 from quadcast.transport.peer_limits import (SCTP_MAX_MISORDERED, RetransmitBudget,  # noqa: E402
                                            limit_retransmissions, limit_sctp_receive)
-from quadcast.transport.webrtc import WebRtcListener, open_webrtc_channel  # noqa: E402
-from webrtc_peers import quasar_payloads, receive_frames  # noqa: E402
+from webrtc_peers import client_of, quasar_payloads, receive_frames, serving  # noqa: E402
 
 
 def _budget(**kw):
@@ -89,25 +88,11 @@ def test_a_client_flooding_nacks_gets_a_bounded_number_of_packets_again():
     (aiortc's own sender would send 102,000 packets again); the server's sender is behind a RetransmitBudget."""
     from aiortc.rtp import RTCP_RTPFB, pack_rtcp_packet
     sent = [dataclasses.replace(p, geometry=p.geometry + os.urandom(600_000)) for p in quasar_payloads(2)]
-    counts = {}
-
-    async def serve(channel):
-        await channel.recv()
-        await channel.send(Welcome(1, 30.0))
-        sender = channel.pc.getTransceivers()[0].sender
-        counts["budget"] = sender._retransmit
-        for payload in sent:
-            await channel.send_frame(payload)
-        while await channel.recv() is not None:
-            pass
+    senders = []
 
     async def main():
-        listener = WebRtcListener("127.0.0.1", 0, serve)
-        await listener.start()
-        try:
-            ch = await open_webrtc_channel("127.0.0.1", listener.port, 1 << 24, timeout=20)
-            await ch.send(Hello(PROTOCOL_VERSION, "quasar", 160, 90, 60.0))
-            await asyncio.wait_for(ch.recv(), 20)
+        serve = serving(sent, lambda channel: senders.append(channel.pc.getTransceivers()[0].sender))
+        async with client_of(serve) as ch:
             await receive_frames(ch, len(sent), timeout=30)
             receiver = ch.pc.getTransceivers()[0].receiver
             media_ssrc = next(iter(receiver._RTCRtpReceiver__active_ssrc))
@@ -115,20 +100,15 @@ def test_a_client_flooding_nacks_gets_a_bounded_number_of_packets_again():
             items = b"".join(struct.pack("!HH", (top - 17 * (i % 60) - 16) & 0xFFFF, 0xFFFF) for i in range(300))
             nack = pack_rtcp_packet(RTCP_RTPFB, 1, struct.pack("!LL", receiver._RTCRtpReceiver__rtcp_ssrc,
                                                                  media_ssrc) + items)
-            budget = counts["budget"]
             start = asyncio.get_running_loop().time()
             for _ in range(20):
                 await receiver._send_rtcp(_Raw(nack))
                 await asyncio.sleep(0.01)
             await asyncio.sleep(1.0)
-            elapsed = asyncio.get_running_loop().time() - start
-            await ch.send(Bye())
-            await ch.close()
-            return budget, elapsed
-        finally:
-            await listener.close()
+            return asyncio.get_running_loop().time() - start
 
-    budget, elapsed = asyncio.run(asyncio.wait_for(main(), 90))
+    elapsed = asyncio.run(asyncio.wait_for(main(), 90))
+    budget = senders[0]._retransmit
     assert isinstance(budget, RetransmitBudget)
     assert 10 * 300 * 17 <= budget.passed + budget.refused <= 20 * 300 * 17    # the requests reached the budget
     assert 1000 <= budget.passed <= budget.burst + budget.per_s * elapsed
@@ -189,22 +169,10 @@ def test_a_peer_sending_a_message_that_never_ends_is_held_to_the_window():
     """The client sends the server 5 MB of fragments of one message, never its last: aiortc's association alone
     would keep all that arrives; with the limit it holds at most its 1 MiB window."""
     from aiortc.rtcsctptransport import SCTP_DATA_FIRST_FRAG, DataChunk
-    held = {}
-
-    async def serve(channel):
-        held["sctp"] = channel.pc.sctp
-        await channel.recv()
-        await channel.send(Welcome(1, 30.0))
-        while await channel.recv() is not None:
-            pass
+    servers = []
 
     async def main():
-        listener = WebRtcListener("127.0.0.1", 0, serve)
-        await listener.start()
-        try:
-            ch = await open_webrtc_channel("127.0.0.1", listener.port, 1 << 24, timeout=20)
-            await ch.send(Hello(PROTOCOL_VERSION, "quasar", 160, 90, 60.0))
-            await asyncio.wait_for(ch.recv(), 20)
+        async with client_of(serving(on_channel=lambda channel: servers.append(channel.pc.sctp))) as ch:
             sctp, sid = ch.pc.sctp, ch.dc["control"].id
             tsn = sctp._local_tsn
             for i in range(5000):
@@ -215,12 +183,9 @@ def test_a_peer_sending_a_message_that_never_ends_is_held_to_the_window():
                 if i % 50 == 0:
                     await asyncio.sleep(0.002)     # what the loopback's buffers take
             await asyncio.sleep(0.5)
-            server = held["sctp"]
+            server = servers[0]
             data = sum(len(c.user_data) for s in server._inbound_streams.values() for c in s.reassembly)
-            await ch.close()
             return data, server._advertised_rwnd, getattr(server._receive_data_chunk, "dropped", [0])[0]
-        finally:
-            await listener.close()
 
     data, window, dropped = asyncio.run(asyncio.wait_for(main(), 90))
     assert data <= 1 << 20 and window >= 0 and dropped > 0
@@ -229,34 +194,17 @@ def test_a_peer_sending_a_message_that_never_ends_is_held_to_the_window():
 def test_data_channels_the_protocol_does_not_have_are_closed_by_the_server():
     """A client opening 200 more data channels (unknown labels, and "control" again): the server's association keeps
     only the protocol's three, and the session goes on."""
-    held = {}
-
-    async def serve(channel):
-        held["sctp"] = channel.pc.sctp
-        await channel.recv()
-        await channel.send(Welcome(1, 30.0))
-        while (msg := await channel.recv()) is not None:
-            if isinstance(msg, Hello):
-                await channel.send(Welcome(2, 30.0))
+    servers = []
 
     async def main():
-        listener = WebRtcListener("127.0.0.1", 0, serve)
-        await listener.start()
-        try:
-            ch = await open_webrtc_channel("127.0.0.1", listener.port, 1 << 24, timeout=20)
-            await ch.send(Hello(PROTOCOL_VERSION, "quasar", 160, 90, 60.0))
-            await asyncio.wait_for(ch.recv(), 20)
+        async with client_of(serving(on_channel=lambda channel: servers.append(channel.pc.sctp))) as ch:
             for i in range(200):
                 ch.pc.createDataChannel("control" if i == 0 else f"extra{i}")
             await asyncio.sleep(1.5)
-            kept = len(held["sctp"]._data_channels)
-            await ch.send(Hello(PROTOCOL_VERSION, "quasar", 160, 90, 60.0))
-            again = await asyncio.wait_for(ch.recv(), 20)
-            await ch.send(Bye())
-            await ch.close()
-            return kept, again
-        finally:
-            await listener.close()
+            kept = len(servers[0]._data_channels)
+            await ch.send(ReferenceRequest("still there?"))
+            await ch.send(PoseUpdate(0, 0.0, [0, 1.6, 0], [0, 0, 0, 1]))
+            return kept, ch.pc.connectionState
 
-    kept, again = asyncio.run(asyncio.wait_for(main(), 90))
-    assert kept == 3 and again == Welcome(2, 30.0)
+    kept, state = asyncio.run(asyncio.wait_for(main(), 90))
+    assert kept == 3 and state == "connected"

@@ -15,7 +15,7 @@ from quadcast.protocol.messages import PROTOCOL_VERSION, Bye, Hello, Welcome  # 
 from quadcast.sim.proxy import parse_link_args  # noqa: E402
 from quadcast.sim.rtc_proxy import RtcLinkProxy, candidate_addresses, rewrite_candidates  # noqa: E402
 from quadcast.transport.webrtc import SignallingPolicy, WebRtcListener, open_webrtc_channel  # noqa: E402
-from webrtc_peers import http_request, quasar_payloads, receive_frames  # noqa: E402
+from webrtc_peers import assert_same_frames, http_request, quasar_payloads, receive_frames  # noqa: E402
 
 SDP = "\r\n".join([
     "v=0",
@@ -85,12 +85,7 @@ def test_a_webrtc_session_runs_through_the_link_and_its_delay():
     assert stats.connections_accepted == 2 and stats.upstream_failures == 0
     assert stats.up.messages_forwarded > 0 and stats.down.messages_forwarded > 0
     assert stats.down.bytes_forwarded > sum(p.size_bytes for p in sent)     # the frames crossed the link
-    from quadcast.codec.decoder import AtlasDecoder
-    direct, received = AtlasDecoder(), AtlasDecoder()
-    for original, got in zip(sent, frames):
-        assert got.geometry == original.geometry
-        np.testing.assert_array_equal(received.decode(got.video, got.frame_id),
-                                      direct.decode(original.video, original.frame_id))
+    assert_same_frames(sent, frames)
 
 
 def test_the_link_refuses_a_bad_offer_without_asking_the_server():

@@ -19,7 +19,8 @@ from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, Frame, Hello, Pos
                                Welcome)
 from quadcast.protocol.quads import decode_quad_frame  # noqa: E402
 from quadcast.transport.webrtc import WebRtcListener, open_webrtc_channel  # noqa: E402
-from webrtc_peers import http_request, quasar_payloads, receive_frames  # noqa: E402
+from webrtc_peers import (assert_same_frames, client_of, http_request, quasar_payloads,  # noqa: E402
+                          receive_frames, serving)
 
 W, H = 160, 90
 
@@ -246,42 +247,19 @@ def test_frames_larger_than_aiortcs_jitter_buffer_arrive_whole():
     from quadcast.transport.rtp_reassembly import FrameReassembly
     sent = [dataclasses.replace(p, geometry=p.geometry + os.urandom(1_200_000) * (i == 0))
             for i, p in enumerate(quasar_payloads(3))]
-
     server_sends = []
 
-    async def serve(channel):
-        server_sends.append(channel.pc.getTransceivers()[0].sender.transport._send_rtp)
-        await channel.recv()
-        await channel.send(Welcome(1, 30.0))
-        for payload in sent:
-            await channel.send_frame(payload)
-        while await channel.recv() is not None:
-            pass
-
     async def main():
-        listener = WebRtcListener("127.0.0.1", 0, serve)
-        await listener.start()
-        try:
-            ch = await open_webrtc_channel("127.0.0.1", listener.port, 1 << 24, timeout=20)
+        serve = serving(sent, lambda channel: server_sends.append(
+            channel.pc.getTransceivers()[0].sender.transport._send_rtp))
+        async with client_of(serve) as ch:
             buffers = [type(t.receiver._RTCRtpReceiver__jitter_buffer) for t in ch.pc.getTransceivers()]
-            await ch.send(Hello(PROTOCOL_VERSION, "quasar", W, H, 60.0))
-            await asyncio.wait_for(ch.recv(), 20)
-            frames = await receive_frames(ch, len(sent), timeout=30)
-            await ch.send(Bye())
-            await ch.close()
-            return buffers, ch.frames_in_band, frames
-        finally:
-            await listener.close()
+            return buffers, ch.frames_in_band, await receive_frames(ch, len(sent), timeout=30)
 
     buffers, in_band, frames = asyncio.run(asyncio.wait_for(main(), 90))
     assert buffers == [FrameReassembly] and in_band
     assert server_sends[0].sent[0] >= 900        # the server's packets went through share_the_loop_while_sending
-    assert [f.frame_id for f in frames] == [p.frame_id for p in sent]
-    direct, one_stream = AtlasDecoder(), AtlasDecoder()
-    for original, received in zip(sent, frames):
-        assert received.geometry == original.geometry
-        np.testing.assert_array_equal(one_stream.decode(received.video, received.frame_id),
-                                      direct.decode(original.video, original.frame_id))
+    assert_same_frames(sent, frames)
 
 
 def test_sending_a_frames_packets_lets_the_event_loop_run_other_work():

@@ -1,8 +1,9 @@
-"""What the WebRTC tests share: QUASAR frames to send and to receive, and a raw HTTP request to a signalling
-endpoint."""
+"""What the WebRTC tests share: QUASAR frames to send and to receive, a raw HTTP request to a signalling endpoint, a
+server's session and a client connected to it, and the check that frames arrived as sent."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 
 
 def quasar_payloads(n: int, width: int = 160, height: int = 90):
@@ -44,3 +45,54 @@ async def receive_frames(channel, n: int, timeout: float = 20.0) -> list:
         assert isinstance(msg, Frame), msg
         frames.append(decode_frame_payload(msg.payload))
     return frames
+
+
+def serving(frames=(), on_channel=None):
+    """A server's session for a WebRtcListener: ``on_channel(channel)`` first (to look at the server's side), then
+    Welcome to the client's Hello, ``frames`` sent, and every later message read until the client goes."""
+    from quadcast.protocol.messages import Welcome
+
+    async def serve(channel):
+        if on_channel is not None:
+            on_channel(channel)
+        await channel.recv()
+        await channel.send(Welcome(1, 30.0))
+        for payload in frames:
+            await channel.send_frame(payload)
+        while await channel.recv() is not None:
+            pass
+    return serve
+
+
+@contextlib.asynccontextmanager
+async def client_of(serve, width: int = 160, height: int = 90):
+    """A WebRtcListener running ``serve`` on a free port, and a client's channel to it past Hello and Welcome."""
+    from quadcast.protocol.messages import PROTOCOL_VERSION, Bye, Hello
+    from quadcast.transport.webrtc import WebRtcListener, open_webrtc_channel
+    listener = WebRtcListener("127.0.0.1", 0, serve)
+    await listener.start()
+    try:
+        channel = await open_webrtc_channel("127.0.0.1", listener.port, 1 << 24, timeout=20)
+        try:
+            await channel.send(Hello(PROTOCOL_VERSION, "quasar", width, height, 60.0))
+            await asyncio.wait_for(channel.recv(), 20)
+            yield channel
+            await channel.send(Bye())
+        finally:
+            await channel.close()
+    finally:
+        await listener.close()
+
+
+def assert_same_frames(sent, received) -> None:
+    """``received`` (FramePayloads) are ``sent``: the same frames, quads byte for byte, pictures that decode in one
+    stream to what the sent access units decode to."""
+    import numpy as np
+
+    from quadcast.codec.decoder import AtlasDecoder
+    assert [f.frame_id for f in received] == [p.frame_id for p in sent]
+    direct, one_stream = AtlasDecoder(), AtlasDecoder()
+    for original, got in zip(sent, received):
+        assert got.geometry == original.geometry
+        np.testing.assert_array_equal(one_stream.decode(got.video, got.frame_id),
+                                      direct.decode(original.video, original.frame_id))
