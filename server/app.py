@@ -98,6 +98,7 @@ class ServerConfig:
     allow_plaintext_token: bool = False  # a token on a non-loopback bind needs TLS unless this is set
     max_peer_connections: int = 8       # WebRTC: peer connections at once (open or opening)
     stun: str | None = None             # WebRTC: a STUN server URL (default: none, host candidates only)
+    pace_mbit: float | None = None      # WebRTC: each session's RTP sent no faster than this (default: unpaced)
     worker: str = "process"             # where a session renders and encodes: "process" or "thread"
     worker_start_timeout: float = 60.0  # a session's worker must be ready (GL context, scene, server) by then
     # worker processes kept booted for the next sessions (worker="process"): all of them while no session runs;
@@ -128,6 +129,8 @@ class ServerConfig:
             raise ValueError(f"--spare-workers: expected 0..8, got {self.spare_workers}")
         if self.queue_frames < 1 or self.max_peer_connections < 1:
             raise ValueError("--max-peer-connections and the queue length must be >= 1")
+        if self.pace_mbit is not None and not (math.isfinite(self.pace_mbit) and self.pace_mbit > 0):
+            raise ValueError(f"--pace: expected a rate > 0 Mbit/s, got {self.pace_mbit}")
         if self.tls_key is not None and self.tls_cert is None:
             raise ValueError("--tls-key needs --tls-cert")
         self.limits()                    # ValueError naming a bad limit
@@ -726,7 +729,8 @@ class LiveServer:
             policy = SignallingPolicy(token=cfg.token, ssl=self.ssl, admission=self.admission,
                                       max_peer_connections=cfg.max_peer_connections, stun=cfg.stun)
             self._rtc = WebRtcListener(cfg.host, cfg.port, self.serve_channel,
-                                       max_message_bytes=cfg.max_message_bytes, policy=policy)
+                                       max_message_bytes=cfg.max_message_bytes, policy=policy,
+                                       pace_mbit=cfg.pace_mbit)
             await self._rtc.start()
 
     async def _close_spares(self) -> None:

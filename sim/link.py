@@ -57,6 +57,7 @@ __all__ = [
     "parse_duration_ms",
     "parse_rate_mbit",
     "parse_loss",
+    "parse_bytes",
 ]
 
 JitterDistribution = Literal["uniform", "normal"]
@@ -279,6 +280,8 @@ _NUMBER = r"([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)"
 _DURATION_RE = re.compile(rf"^\s*{_NUMBER}\s*(us|usec|ms|msec|s|sec|secs)?\s*$", re.IGNORECASE)
 _RATE_RE = re.compile(rf"^\s*{_NUMBER}\s*([a-z]*)\s*$", re.IGNORECASE)
 _LOSS_RE = re.compile(rf"^\s*{_NUMBER}\s*(%?)\s*$")
+_SIZE_RE = re.compile(rf"^\s*{_NUMBER}\s*([kmg]?)b?\s*$", re.IGNORECASE)
+_SIZE_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30}
 
 _DURATION_TO_MS = {None: 1.0, "us": 1e-3, "usec": 1e-3, "ms": 1.0, "msec": 1.0, "s": 1e3, "sec": 1e3, "secs": 1e3}
 
@@ -356,3 +359,18 @@ def parse_loss(text: str | float) -> float:
         hint = "" if percent or value < 1.0 else f" (did you mean '{text}%'?)"
         raise ValueError(f"loss {text!r} must be in [0, 1) as a fraction or [0%, 100%) as a percentage{hint}")
     return value
+
+
+def parse_bytes(text: str | int) -> int:
+    """Parse a size in bytes, tc-style: ``"64k"`` / ``"64kb"`` (KiB), ``"16m"`` (MiB), ``"1g"``, or a bare number of
+    bytes. The result must be a whole number of bytes > 0."""
+    if isinstance(text, int) and not isinstance(text, bool):
+        value = float(text)
+    else:
+        m = _SIZE_RE.match(str(text))
+        if m is None:
+            raise ValueError(f"cannot parse size {text!r}: expected e.g. '64k', '16m' or a number of bytes")
+        value = float(m.group(1)) * _SIZE_UNITS[m.group(2).lower()]
+    if not math.isfinite(value) or value < 1:
+        raise ValueError(f"size {text!r} must be at least 1 byte")
+    return int(value)

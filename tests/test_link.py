@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from quadcast.sim.link import Delivery, LinkModel, parse_duration_ms, parse_loss, parse_rate_mbit
+from quadcast.sim.link import Delivery, LinkModel, parse_bytes, parse_duration_ms, parse_loss, parse_rate_mbit
 
 
 def test_delivery_time_is_delay_plus_serialization():
@@ -213,9 +213,19 @@ def test_parse_loss(text, frac):
     assert parse_loss(text) == pytest.approx(frac)
 
 
+@pytest.mark.parametrize("text, n", [("64k", 65536), ("128KB", 131072), ("16m", 16 << 20), ("1g", 1 << 30),
+                                     ("1500", 1500), (" 2 k ", 2048), (4096, 4096)])
+def test_parse_bytes(text, n):
+    assert parse_bytes(text) == n
+
+
 @pytest.mark.parametrize(
     "func, text",
     [
+        (parse_bytes, "lots"),
+        (parse_bytes, "0"),
+        (parse_bytes, "-1k"),
+        (parse_bytes, "5 parsecs"),
         (parse_duration_ms, "20 parsecs"),
         (parse_duration_ms, "-5ms"),
         (parse_duration_ms, ""),

@@ -288,3 +288,29 @@ def test_sending_a_frames_packets_lets_the_event_loop_run_other_work():
         other.cancel()
         return len(ticks) - before
     assert asyncio.run(main()) >= 1000 // 32
+
+
+def test_a_paced_peer_connection_sends_no_faster_than_its_rate():
+    """``--pace 8mbit``: 20 packets of 1,000 bytes take 19 ms of the loop's time from first to last (each 1 ms at
+    that rate; the pacer does not sleep for less than a millisecond, so a packet may leave that much early);
+    unpaced they go at once. A bad rate is refused."""
+    from quadcast.transport.webrtc import share_the_loop_while_sending
+
+    class Transport:
+        def __init__(self):
+            self.times = []
+
+        async def _send_rtp(self, data):
+            self.times.append(asyncio.get_running_loop().time())
+
+    async def send(pace):
+        transport = Transport()
+        share_the_loop_while_sending(transport, pace_mbit=pace)
+        for _ in range(20):
+            await transport._send_rtp(b"x" * 1000)
+        return transport.times[-1] - transport.times[0]
+
+    assert asyncio.run(send(8.0)) >= 0.018 - 1e-6
+    assert asyncio.run(send(None)) < 0.018
+    with pytest.raises(ValueError, match="pace must be a rate > 0"):
+        share_the_loop_while_sending(Transport(), pace_mbit=0.0)

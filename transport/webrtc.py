@@ -240,17 +240,29 @@ SEND_YIELD_PACKETS = 32
 :func:`share_the_loop_while_sending`)."""
 
 
-def share_the_loop_while_sending(dtls_transport, every: int = SEND_YIELD_PACKETS) -> bool:
+def share_the_loop_while_sending(dtls_transport, every: int = SEND_YIELD_PACKETS,
+                                 pace_mbit: float | None = None) -> bool:
     """Let the event loop run other work after every ``every`` RTP/RTCP packets that ``dtls_transport`` (an aiortc
-    ``RTCDtlsTransport``) sends. aiortc's sender encrypts and sends a frame's packets one after the other without
-    yielding, so a 1920x1080 frame of about 1,000 packets held the loop that serves every session for up to 58 ms.
-    False (nothing changed) where the transport has no ``_send_rtp`` or has this already."""
+    ``RTCDtlsTransport``) sends, and with ``pace_mbit`` send them no faster than that (aiortc has no pacer: a frame's
+    packets leave at once, and a link's shallow queue drops the burst's tail). aiortc's sender encrypts and sends a
+    frame's packets one after the other without yielding, so a 1920x1080 frame of about 1,000 packets held the loop
+    that serves every session for up to 58 ms. False (nothing changed) where the transport has no ``_send_rtp`` or
+    has this already."""
     send = getattr(dtls_transport, "_send_rtp", None)
     if not callable(send) or hasattr(send, "sent"):
         return False
+    if pace_mbit is not None and not (math.isfinite(pace_mbit) and pace_mbit > 0):
+        raise ValueError(f"pace must be a rate > 0 Mbit/s, got {pace_mbit!r}")
     sent = [0]
+    free_at = [0.0]          # with pacing, when the pacer's virtual line is free again (loop time)
 
     async def send_and_yield(data: bytes) -> None:
+        if pace_mbit is not None:
+            now = asyncio.get_running_loop().time()
+            start = max(now, free_at[0])
+            free_at[0] = start + len(data) * 8 / (pace_mbit * 1e6)
+            if start - now > 0.001:          # the loop's timers are about a millisecond fine
+                await asyncio.sleep(start - now)
         await send(data)
         sent[0] += 1
         if sent[0] % every == 0:
@@ -597,8 +609,9 @@ class WebRtcListener:
 
     def __init__(self, host: str, port: int, on_channel: Callable[[WebRtcChannel], Awaitable[None]],
                  max_message_bytes: int = 64 * 1024, open_timeout: float = 15.0,
-                 policy: SignallingPolicy | None = None) -> None:
+                 policy: SignallingPolicy | None = None, pace_mbit: float | None = None) -> None:
         self.host, self.requested_port = host, port
+        self.pace_mbit = pace_mbit              # each session's RTP sent no faster (None: as fast as it comes)
         self.on_channel = on_channel
         self.max_message_bytes = max_message_bytes
         self.open_timeout = open_timeout
@@ -720,7 +733,7 @@ class WebRtcListener:
             await pc.close()
             raise ValueError(f"bad offer: {exc}") from None
 
-        if not share_the_loop_while_sending(sender.transport):
+        if not share_the_loop_while_sending(sender.transport, pace_mbit=self.pace_mbit):
             log.warning("webrtc %s: this aiortc (%s) sends each frame without yielding", peer, _aiortc_version())
         if not limit_retransmissions(sender):
             log.warning("webrtc %s: this aiortc (%s) answers NACKs without a limit", peer, _aiortc_version())

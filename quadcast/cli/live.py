@@ -76,7 +76,8 @@ def cmd_server(args) -> int:
                        handshake_timeout=args.handshake_timeout, idle_timeout=args.idle_timeout,
                        retry_after=args.retry_after, tls_cert=args.tls_cert, tls_key=args.tls_key,
                        allow_plaintext_token=args.allow_plaintext_token,
-                       max_peer_connections=args.max_peer_connections, stun=args.stun, adapt=args.adapt,
+                       max_peer_connections=args.max_peer_connections, stun=args.stun, pace_mbit=args.pace,
+                       adapt=args.adapt,
                        target_mbps=args.target_mbps, ladder=args.ladder, point=args.point)
 
     async def main() -> None:
@@ -171,17 +172,19 @@ def link_models(delay: str, jitter: str, rate: str | None, loss: str, seed: int,
 
 def cmd_link(args) -> int:
     from quadcast.server.app import check_bind
+    from quadcast.sim.link import parse_bytes
     from quadcast.sim.proxy import LinkProxy
     from quadcast.sim.rtc_proxy import RtcLinkProxy
     _setup_logging(args.verbose)
     to_host, to_port = parse_hostport(args.to)
     check_bind(args.host, "x" if args.public else "", allow_plaintext_token=True)   # the link holds no token
     up, down = link_models(args.delay, args.jitter, args.rate, args.loss, args.seed, args.rate_trace)
+    queue = parse_bytes(args.queue)
     if args.webrtc:
-        proxy = RtcLinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down)
+        proxy = RtcLinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down, max_queue_bytes=queue)
         units, conns = "datagrams", "signalling requests"
     else:
-        proxy = LinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down)
+        proxy = LinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down, max_queue_bytes=queue)
         units, conns = "messages", "connections"
 
     def report() -> None:
@@ -197,7 +200,7 @@ def cmd_link(args) -> int:
             rate = f"{rate} up, {args.rate_trace} down"
         print(f"link: listening on {args.host}:{proxy.port} -> {to_host}:{to_port} ("
               f"{'webrtc: signalling and UDP, ' if args.webrtc else ''}delay {args.delay}, jitter "
-              f"{args.jitter}, rate {rate}, loss {args.loss})", flush=True)
+              f"{args.jitter}, rate {rate}, loss {args.loss}, queue {args.queue})", flush=True)
         await proxy.serve_forever()
 
     asyncio.run(_run_until_signal(main(), on_stop=report))
@@ -208,9 +211,18 @@ def cmd_link(args) -> int:
 
 def add_live_commands(sub) -> None:
     """Add ``server``, ``client`` and ``link`` to ``quadcast``'s subparsers."""
+    import argparse
+
     from quadcast.cli import add_trace_placement
     from quadcast.protocol.admission import ServerLimits
     from quadcast.protocol.methods import METHODS
+    from quadcast.sim.link import parse_rate_mbit
+
+    def rate(text: str) -> float:
+        try:
+            return parse_rate_mbit(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
     lim = ServerLimits()
 
     p = sub.add_parser("server", help="live server: stream a method to clients over TCP or WebRTC")
@@ -266,6 +278,9 @@ def add_live_commands(sub) -> None:
     g.add_argument("--max-peer-connections", type=int, default=8,
                    help="WebRTC peer connections at once, opening or open (default %(default)s)")
     p.add_argument("--stun", help="WebRTC: a STUN server URL (default: none; host candidates only)")
+    p.add_argument("--pace", type=rate, metavar="RATE",
+                   help="WebRTC: send each session's RTP packets no faster than this, e.g. 40mbit (default: each "
+                        "frame's packets at once, as aiortc does; a link with a shallow queue drops the burst)")
     p.add_argument("--worker", default="process", choices=["process", "thread"],
                    help="where each session renders and encodes: its own process (default), or a thread of the "
                         "server's process (stalls the event loop while it renders)")
@@ -330,6 +345,9 @@ def add_live_commands(sub) -> None:
                                         "(one line per 1500-byte delivery opportunity, ms; it repeats) or "
                                         "builtin:const-20|step-100-15-100|sawtooth-10-40")
     p.add_argument("--loss", default="0%", help="message loss per direction, e.g. 0.5%% (datagrams with --webrtc)")
+    p.add_argument("--queue", default="16m",
+                   help="drop-tail queue per direction, bytes: what may wait for --rate (and in the receiver's socket "
+                        "buffer) before a message or datagram is dropped, e.g. 64k (default 16m)")
     p.add_argument("--webrtc", action="store_true",
                    help="for `--transport webrtc`: --to is the server's signalling port; the link answers the "
                         "client's POST /offer, puts its own UDP sockets in both descriptions and shapes every "
