@@ -160,7 +160,7 @@ class FrameReassembly:
         for i in range(self._scanned + 1, delta + 1):   # the first packet past the gap of another frame
             packet = self._slots[(self._origin + i) % cap]
             if packet is not None and (gap_ts is None or packet.timestamp != gap_ts):
-                log.info("rtp: a frame (timestamp %s) waited %.2f s for a lost packet; dropped with %d packets",
+                log.info("rtp: a frame (timestamp %s) waited %.2f s for a lost packet; dropped with %d slots",
                          gap_ts, now - self._blocked[1], i)
                 self.remove(i)
                 self._blocked = None
