@@ -632,6 +632,9 @@ class LiveServer:
         module-level function, e.g. :func:`quadcast.methods.make_server`)."""
         if transport not in ("tcp", "webrtc"):
             raise ValueError(f"--transport: expected tcp or webrtc, got {transport!r}")
+        if config.pace_mbit is not None and transport != "webrtc":
+            raise ValueError("--pace paces WebRTC's RTP packets; over TCP the kernel's congestion control sets the "
+                             "pace (use --transport webrtc, or leave --pace out)")
         from quadcast.render.scene import load_scene
         self.config, self.transport, self.make_server = config, transport, make_server
         self.totals = ServerCounters()      # of the sessions that ended

@@ -456,6 +456,15 @@ def test_each_session_encodes_in_its_own_process_and_killing_it_ends_only_that_s
 
 # ------------------------------------------------------------------------------------ fast unit checks
 
+def test_pace_is_checked_and_only_for_webrtc():
+    from quadcast.methods import make_server
+    from quadcast.server.app import LiveServer, ServerConfig
+    with pytest.raises(ValueError, match="--pace: expected a rate > 0"):
+        ServerConfig(pace_mbit=0.0)
+    with pytest.raises(ValueError, match="--pace paces WebRTC"):
+        LiveServer(ServerConfig(pace_mbit=10.0), make_server, transport="tcp")
+
+
 def test_bind_and_address_checks():
     check_bind("127.0.0.1", "")
     check_bind("::1", "")
