@@ -15,7 +15,8 @@ from quadcast.protocol.messages import PROTOCOL_VERSION, Bye, Hello, Welcome  # 
 from quadcast.sim.proxy import parse_link_args  # noqa: E402
 from quadcast.sim.rtc_proxy import RtcLinkProxy, candidate_addresses, rewrite_candidates  # noqa: E402
 from quadcast.transport.webrtc import SignallingPolicy, WebRtcListener, open_webrtc_channel  # noqa: E402
-from webrtc_peers import assert_same_frames, http_request, quasar_payloads, receive_frames  # noqa: E402
+from webrtc_peers import (assert_same_frames, http_request, post_offer_body, quasar_payloads,  # noqa: E402
+                          receive_frames)
 
 SDP = "\r\n".join([
     "v=0",
@@ -101,14 +102,11 @@ def test_the_link_refuses_a_bad_offer_without_asking_the_server():
                             max_candidates=2)
         await link.start()
         try:
-            body = b'{"type": "offer", "sdp": 5}'
-            bad_json = await http_request(link.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
-                                     % (len(body), body))
+            bad_json = await post_offer_body(link.port, b'{"type": "offer", "sdp": 5}')
             wrong_path = await http_request(link.port, b"GET / HTTP/1.1\r\n\r\n")
             many = "\r\n".join(f"a=candidate:{i} 1 udp 1 192.0.2.{i} 5000 typ host" for i in range(1, 4))
             body = ('{"type": "offer", "sdp": "v=0\\r\\n%s\\r\\n"}' % many.replace("\r\n", "\\r\\n")).encode()
-            too_many = await http_request(link.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
-                                     % (len(body), body))
+            too_many = await post_offer_body(link.port, body)
             return bad_json, wrong_path, too_many, link.stats
         finally:
             await link.close()

@@ -19,8 +19,8 @@ from quadcast.protocol.messages import (PROTOCOL_VERSION, Bye, Frame, Hello, Pos
                                Welcome)
 from quadcast.protocol.quads import decode_quad_frame  # noqa: E402
 from quadcast.transport.webrtc import WebRtcListener, open_webrtc_channel  # noqa: E402
-from webrtc_peers import (assert_same_frames, client_of, http_request, quasar_payloads,  # noqa: E402
-                          receive_frames, serving)
+from webrtc_peers import (assert_same_frames, client_of, http_request, post_offer_body,  # noqa: E402
+                          quasar_payloads, receive_frames, serving)
 
 W, H = 160, 90
 
@@ -127,15 +127,12 @@ def test_signalling_rejects_bad_requests():
         listener = WebRtcListener("127.0.0.1", 0, serve)
         await listener.start()
         try:
-            body = b'{"type": "offer", "sdp": 5}'
-            bad_json = await http_request(listener.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
-                                     % (len(body), body))
+            bad_json = await post_offer_body(listener.port, b'{"type": "offer", "sdp": 5}')
             wrong_path = await http_request(listener.port, b"GET / HTTP/1.1\r\n\r\n")
             huge = await http_request(listener.port,
                                       b"POST /offer HTTP/1.1\r\nContent-Length: 99999999\r\n\r\n")
-            bad_sdp_body = json.dumps({"type": "offer", "sdp": "v=0\r\nnot sdp"}).encode()
-            bad_sdp = await http_request(listener.port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s"
-                                    % (len(bad_sdp_body), bad_sdp_body))
+            bad_sdp = await post_offer_body(listener.port,
+                                            json.dumps({"type": "offer", "sdp": "v=0\r\nnot sdp"}).encode())
             return bad_json, wrong_path, huge, bad_sdp
         finally:
             await listener.close()
@@ -258,20 +255,20 @@ def test_frames_larger_than_aiortcs_jitter_buffer_arrive_whole():
 
     buffers, in_band, frames = asyncio.run(asyncio.wait_for(main(), 90))
     assert buffers == [FrameReassembly] and in_band
-    assert server_sends[0].sent[0] >= 900        # the server's packets went through share_the_loop_while_sending
+    assert server_sends[0].sent[0] >= 900        # the server's packets went through pace_rtp_sending
     assert_same_frames(sent, frames)
 
 
 def test_sending_a_frames_packets_lets_the_event_loop_run_other_work():
-    from quadcast.transport.webrtc import share_the_loop_while_sending
+    from quadcast.transport.webrtc import pace_rtp_sending
 
     class Transport:
         async def _send_rtp(self, data):
             pass
     transport = Transport()
-    assert share_the_loop_while_sending(transport, every=32) is True
-    assert share_the_loop_while_sending(transport) is False          # not twice
-    assert share_the_loop_while_sending(object()) is False
+    assert pace_rtp_sending(transport, every=32) is True
+    assert pace_rtp_sending(transport) is False          # not twice
+    assert pace_rtp_sending(object()) is False
 
     async def main():
         ticks = []
@@ -294,7 +291,7 @@ def test_a_paced_peer_connection_sends_no_faster_than_its_rate():
     """``--pace 8mbit``: 20 packets of 1,000 bytes take 19 ms of the loop's time from first to last (each 1 ms at
     that rate; the pacer does not sleep for less than a millisecond, so a packet may leave that much early);
     unpaced they go at once. A bad rate is refused."""
-    from quadcast.transport.webrtc import share_the_loop_while_sending
+    from quadcast.transport.webrtc import pace_rtp_sending
 
     class Transport:
         def __init__(self):
@@ -305,7 +302,7 @@ def test_a_paced_peer_connection_sends_no_faster_than_its_rate():
 
     async def send(pace):
         transport = Transport()
-        share_the_loop_while_sending(transport, pace_mbit=pace)
+        pace_rtp_sending(transport, pace_mbit=pace)
         for _ in range(20):
             await transport._send_rtp(b"x" * 1000)
         return transport.times[-1] - transport.times[0]
@@ -313,4 +310,6 @@ def test_a_paced_peer_connection_sends_no_faster_than_its_rate():
     assert asyncio.run(send(8.0)) >= 0.018 - 1e-6
     assert asyncio.run(send(None)) < 0.018
     with pytest.raises(ValueError, match="pace must be a rate > 0"):
-        share_the_loop_while_sending(Transport(), pace_mbit=0.0)
+        pace_rtp_sending(Transport(), pace_mbit=0.0)
+    with pytest.raises(ValueError, match="pace must be a rate > 0"):      # when the server starts, not per offer
+        WebRtcListener("127.0.0.1", 0, lambda channel: None, pace_mbit=float("nan"))

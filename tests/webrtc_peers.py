@@ -35,6 +35,11 @@ async def http_request(port: int, raw: bytes) -> bytes:
     return data
 
 
+async def post_offer_body(port: int, body: bytes) -> bytes:
+    """``POST /offer`` with ``body`` as it is (JSON or not) to 127.0.0.1:``port``, and the whole answer."""
+    return await http_request(port, b"POST /offer HTTP/1.1\r\nContent-Length: %d\r\n\r\n%s" % (len(body), body))
+
+
 async def receive_frames(channel, n: int, timeout: float = 20.0) -> list:
     """The next ``n`` messages of ``channel``, each a Frame, decoded (FramePayload)."""
     from quadcast.protocol.frame import decode_frame_payload

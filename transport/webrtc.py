@@ -51,7 +51,7 @@ would reach out to the internet for every offer.
 What a peer can make the other side do is bounded where aiortc leaves it open (:mod:`quadcast.transport.peer_limits`):
 the server's retransmissions on a client's NACKs, SCTP data held past the receive window (both sides), and data
 channels beyond the three (the server closes them). The server's peer connections also let the event loop run while
-they send a frame's packets (:func:`share_the_loop_while_sending`).
+they send a frame's packets (:func:`pace_rtp_sending`).
 """
 from __future__ import annotations
 
@@ -83,7 +83,8 @@ __all__ = ["WebRtcChannel", "WebRtcListener", "SignallingPolicy", "open_webrtc_c
            "AccessUnitTap", "tap_access_units", "access_unit_with_frame", "frame_in_access_unit",
            "read_http_message", "http_response", "error_body", "parse_description", "CHUNK_BYTES", "REENCODE_CRF",
            "FRAMES_IN_BAND", "FRAMES_UUID", "SOCKET_BUFFER_BYTES", "ask_socket_buffers",
-           "enlarge_socket_buffers", "keep_rtp_history", "share_the_loop_while_sending", "SEND_YIELD_PACKETS"]
+           "enlarge_socket_buffers", "keep_rtp_history", "pace_rtp_sending", "checked_pace",
+           "SEND_YIELD_PACKETS"]
 
 log = logging.getLogger("quadcast.webrtc")
 
@@ -237,26 +238,30 @@ def enlarge_socket_buffers(pc, nbytes: int = SOCKET_BUFFER_BYTES) -> int:
 
 SEND_YIELD_PACKETS = 32
 """RTP packets the server's peer connection sends before it lets the event loop run other work (see
-:func:`share_the_loop_while_sending`)."""
+:func:`pace_rtp_sending`)."""
 
 
-def share_the_loop_while_sending(dtls_transport, every: int = SEND_YIELD_PACKETS,
-                                 pace_mbit: float | None = None) -> bool:
-    """Let the event loop run other work after every ``every`` RTP/RTCP packets that ``dtls_transport`` (an aiortc
-    ``RTCDtlsTransport``) sends, and with ``pace_mbit`` send them no faster than that (aiortc has no pacer: a frame's
-    packets leave at once, and a link's shallow queue drops the burst's tail). aiortc's sender encrypts and sends a
-    frame's packets one after the other without yielding, so a 1920x1080 frame of about 1,000 packets held the loop
-    that serves every session for up to 58 ms. False (nothing changed) where the transport has no ``_send_rtp`` or
-    has this already."""
+def checked_pace(pace_mbit: float | None) -> float | None:
+    """``pace_mbit`` if it is None (unpaced) or a rate > 0 Mbit/s; ValueError otherwise."""
+    if pace_mbit is not None and not (math.isfinite(pace_mbit) and pace_mbit > 0):
+        raise ValueError(f"pace must be a rate > 0 Mbit/s, got {pace_mbit!r}")
+    return pace_mbit
+
+
+def pace_rtp_sending(dtls_transport, every: int = SEND_YIELD_PACKETS, pace_mbit: float | None = None) -> bool:
+    """Pace the RTP/RTCP packets ``dtls_transport`` (an aiortc ``RTCDtlsTransport``) sends: let the event loop run
+    other work after every ``every`` of them, and with ``pace_mbit`` send them no faster than that. aiortc has no
+    pacer: its sender encrypts and sends a frame's packets one after the other without yielding, so a 1920x1080
+    frame of about 1,000 packets held the loop that serves every session for up to 58 ms, and a link's shallow queue
+    drops the burst's tail. False (nothing changed) where the transport has no ``_send_rtp`` or is paced already."""
     send = getattr(dtls_transport, "_send_rtp", None)
     if not callable(send) or hasattr(send, "sent"):
         return False
-    if pace_mbit is not None and not (math.isfinite(pace_mbit) and pace_mbit > 0):
-        raise ValueError(f"pace must be a rate > 0 Mbit/s, got {pace_mbit!r}")
+    checked_pace(pace_mbit)
     sent = [0]
-    free_at = [0.0]          # with pacing, when the pacer's virtual line is free again (loop time)
+    free_at = [0.0]          # with a rate, when the pacer's virtual line is free again (loop time)
 
-    async def send_and_yield(data: bytes) -> None:
+    async def send_paced(data: bytes) -> None:
         if pace_mbit is not None:
             now = asyncio.get_running_loop().time()
             start = max(now, free_at[0])
@@ -267,9 +272,17 @@ def share_the_loop_while_sending(dtls_transport, every: int = SEND_YIELD_PACKETS
         sent[0] += 1
         if sent[0] % every == 0:
             await asyncio.sleep(0)
-    send_and_yield.sent = sent
-    dtls_transport._send_rtp = send_and_yield
+    send_paced.sent = sent
+    dtls_transport._send_rtp = send_paced
     return True
+
+
+def _installed(done: bool, peer: str, otherwise: str) -> bool:
+    """``done``, with a warning naming this aiortc's version and what ``otherwise`` happens when it is False (one of
+    the stand-ins for aiortc's internals could not be put in place)."""
+    if not done:
+        log.warning("webrtc %s: this aiortc (%s) %s", peer, _aiortc_version(), otherwise)
+    return done
 
 
 class AccessUnitTap(queue.Queue):
@@ -611,7 +624,7 @@ class WebRtcListener:
                  max_message_bytes: int = 64 * 1024, open_timeout: float = 15.0,
                  policy: SignallingPolicy | None = None, pace_mbit: float | None = None) -> None:
         self.host, self.requested_port = host, port
-        self.pace_mbit = pace_mbit              # each session's RTP sent no faster (None: as fast as it comes)
+        self.pace_mbit = checked_pace(pace_mbit)    # each session's RTP sent no faster (None: as fast as it comes)
         self.on_channel = on_channel
         self.max_message_bytes = max_message_bytes
         self.open_timeout = open_timeout
@@ -733,13 +746,10 @@ class WebRtcListener:
             await pc.close()
             raise ValueError(f"bad offer: {exc}") from None
 
-        if not share_the_loop_while_sending(sender.transport, pace_mbit=self.pace_mbit):
-            log.warning("webrtc %s: this aiortc (%s) sends each frame without yielding", peer, _aiortc_version())
-        if not limit_retransmissions(sender):
-            log.warning("webrtc %s: this aiortc (%s) answers NACKs without a limit", peer, _aiortc_version())
-        if not limit_sctp_receive(pc.sctp):
-            log.warning("webrtc %s: this aiortc (%s) keeps SCTP data past its receive window", peer,
-                        _aiortc_version())
+        _installed(pace_rtp_sending(sender.transport, pace_mbit=self.pace_mbit), peer,
+                   "sends each frame without yielding")
+        _installed(limit_retransmissions(sender), peer, "answers NACKs without a limit")
+        _installed(limit_sctp_receive(pc.sctp), peer, "keeps SCTP data past its receive window")
 
         async def session() -> None:
             try:
@@ -806,23 +816,20 @@ async def open_webrtc_channel(host: str, port: int, max_message_bytes: int, time
         channels = {"control": pc.createDataChannel("control"),
                     "poses": pc.createDataChannel("poses", ordered=False, maxRetransmits=0),
                     "frames": pc.createDataChannel("frames")}
-        if not limit_sctp_receive(pc.sctp):
-            log.warning("webrtc %s:%d: this aiortc (%s) keeps SCTP data past its receive window", host, port,
-                        _aiortc_version())
+        peer = f"{host}:{port}"
+        _installed(limit_sctp_receive(pc.sctp), peer, "keeps SCTP data past its receive window")
         from aiortc import RTCRtpReceiver
         video = pc.addTransceiver("video", direction="recvonly")
         h264 = [c for c in RTCRtpReceiver.getCapabilities("video").codecs if c.mimeType.lower() == "video/h264"]
         if not h264:
             raise RuntimeError("this aiortc build has no H.264 codec")
         video.setCodecPreferences(h264)   # the server sends our H.264 access units as they are
-        channel = WebRtcChannel(pc, channels, max_message_bytes, peer=f"{host}:{port}")
-        if not reassemble_in(video.receiver):
-            log.warning("webrtc %s:%d: this aiortc (%s) keeps its own jitter buffer: frames of more than about "
-                        "600 kB are lost", host, port, _aiortc_version())
-        if not channel.tap_video(video.receiver):
-            log.warning("webrtc %s:%d: this aiortc (%s) does not let the channel take the video track's access "
-                        "units; its decoded pictures are re-encoded (a generation of H.264 loss)", host, port,
-                        _aiortc_version())
+        channel = WebRtcChannel(pc, channels, max_message_bytes, peer=peer)
+        _installed(reassemble_in(video.receiver), peer,
+                   "keeps its own jitter buffer: frames of more than about 600 kB are lost")
+        _installed(channel.tap_video(video.receiver), peer,
+                   "does not let the channel take the video track's access units; its decoded pictures are "
+                   "re-encoded (a generation of H.264 loss)")
 
         @pc.on("track")
         def _on_track(track) -> None:

@@ -63,6 +63,7 @@ def cmd_server(args) -> int:
     from quadcast.methods import make_server
     from quadcast.render.camera import parse_size
     from quadcast.server.app import LiveServer, ServerConfig, server_summary_line
+    from quadcast.sim.link import parse_rate_mbit
     _setup_logging(args.verbose)
     max_w, max_h = parse_size(args.max_size)
     cfg = ServerConfig(scene=args.scene, methods=tuple(m.strip() for m in args.method.split(",") if m.strip()),
@@ -76,8 +77,8 @@ def cmd_server(args) -> int:
                        handshake_timeout=args.handshake_timeout, idle_timeout=args.idle_timeout,
                        retry_after=args.retry_after, tls_cert=args.tls_cert, tls_key=args.tls_key,
                        allow_plaintext_token=args.allow_plaintext_token,
-                       max_peer_connections=args.max_peer_connections, stun=args.stun, pace_mbit=args.pace,
-                       adapt=args.adapt,
+                       max_peer_connections=args.max_peer_connections, stun=args.stun,
+                       pace_mbit=parse_rate_mbit(args.pace) if args.pace else None, adapt=args.adapt,
                        target_mbps=args.target_mbps, ladder=args.ladder, point=args.point)
 
     async def main() -> None:
@@ -211,18 +212,9 @@ def cmd_link(args) -> int:
 
 def add_live_commands(sub) -> None:
     """Add ``server``, ``client`` and ``link`` to ``quadcast``'s subparsers."""
-    import argparse
-
     from quadcast.cli import add_trace_placement
     from quadcast.protocol.admission import ServerLimits
     from quadcast.protocol.methods import METHODS
-    from quadcast.sim.link import parse_rate_mbit
-
-    def rate(text: str) -> float:
-        try:
-            return parse_rate_mbit(text)
-        except ValueError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from None
     lim = ServerLimits()
 
     p = sub.add_parser("server", help="live server: stream a method to clients over TCP or WebRTC")
@@ -278,7 +270,7 @@ def add_live_commands(sub) -> None:
     g.add_argument("--max-peer-connections", type=int, default=8,
                    help="WebRTC peer connections at once, opening or open (default %(default)s)")
     p.add_argument("--stun", help="WebRTC: a STUN server URL (default: none; host candidates only)")
-    p.add_argument("--pace", type=rate, metavar="RATE",
+    p.add_argument("--pace", metavar="RATE",
                    help="WebRTC: send each session's RTP packets no faster than this, e.g. 40mbit (default: each "
                         "frame's packets at once, as aiortc does; a link with a shallow queue drops the burst)")
     p.add_argument("--worker", default="process", choices=["process", "thread"],
