@@ -24,6 +24,15 @@ The model, per message:
 4. **Ordering** -- unless ``reorder=True``, a message never arrives before
    one sent earlier (``arrive = max(arrive, previous arrive)``).
 
+With ``reliable=True`` the direction carries one TCP stream instead of datagrams: nothing is dropped, ``loss`` is
+the probability that each segment of ``mss_bytes`` is lost, and the sender's window behaves like Reno's (with SACK).
+A message's segments leave at most a window per round trip (``rtt_ms``, twice ``delay_ms`` unless given): the window
+starts at ``initial_window`` segments, doubles each round trip that used it all (slow start), grows by one segment
+a round trip past ``ssthresh`` and halves after a round trip with a loss. A lost segment goes again one round trip
+after it went, so the message (and every later one: in-order delivery) waits for it. Queueing in the bottleneck
+does not lengthen the round trip, and the window does not restart after idle (Linux's
+``tcp_slow_start_after_idle=0``).
+
 Loss and jitter use two independent random streams derived from ``seed``, so
 the set of dropped messages depends only on ``seed`` and ``loss`` (not on the
 jitter settings), and the same seed always reproduces the same behaviour.
@@ -40,6 +49,7 @@ Example::
 
 from __future__ import annotations
 
+import collections
 import heapq
 import math
 import re
@@ -54,6 +64,7 @@ __all__ = [
     "Delivery",
     "LinkStats",
     "LinkModel",
+    "RenoWindow",
     "parse_duration_ms",
     "parse_rate_mbit",
     "parse_loss",
@@ -96,6 +107,36 @@ class LinkStats:
     bytes_sent: int = 0
     bytes_dropped: int = 0
     bytes_delivered: int = 0
+    segments_sent: int = 0        # reliable links: TCP segments put on the wire, those sent again included
+    segments_lost: int = 0        # reliable links: segments lost (and sent again)
+
+
+@dataclass
+class RenoWindow:
+    """A TCP sender's congestion window, in segments, advanced one round trip at a time (Reno with SACK: at most
+    one halving per round trip). ``used`` and ``lost`` count the current round's segments."""
+
+    cwnd: float = 10.0
+    ssthresh: float = math.inf
+    round_start: float = -math.inf
+    used: int = 0
+    lost: int = 0
+
+    def room(self) -> int:
+        """Segments the window still lets out in this round."""
+        return max(0, int(self.cwnd) - self.used)
+
+    def next_round(self, t: float) -> None:
+        """Start a round at ``t``: the acknowledgements of the last one have come back and set the window."""
+        if self.lost:
+            self.ssthresh = max(self.cwnd / 2.0, 2.0)
+            self.cwnd = self.ssthresh
+        elif self.used >= int(self.cwnd):   # only a window that limited the sender grows (RFC 7661)
+            if self.cwnd < self.ssthresh:
+                self.cwnd = min(self.cwnd + self.used, max(self.ssthresh, self.cwnd + 1.0))
+            else:
+                self.cwnd += self.used / self.cwnd
+        self.round_start, self.used, self.lost = t, 0, 0
 
 
 def _require_finite_nonneg(name: str, value: float) -> float:
@@ -131,6 +172,14 @@ class LinkModel:
         A Mahimahi bandwidth trace instead of a fixed ``rate_mbit`` (not both).
     trace_start:
         The link time (s) at which the trace's time 0 falls.
+    reliable:
+        Carry one TCP stream (see the module's docstring): segments are lost and sent again, messages never.
+    rtt_ms:
+        The round trip a reliable link's sender sees (``None``: ``2 * delay_ms``).
+    mss_bytes:
+        A reliable link's segment size.
+    initial_window:
+        A reliable link's first window, in segments (Linux: 10).
     """
 
     def __init__(
@@ -144,6 +193,10 @@ class LinkModel:
         seed: int = 0,
         rate_trace: RateTrace | None = None,
         trace_start: float = 0.0,
+        reliable: bool = False,
+        rtt_ms: float | None = None,
+        mss_bytes: int = 1448,
+        initial_window: int = 10,
     ) -> None:
         self.delay_ms = _require_finite_nonneg("delay_ms", delay_ms)
         self.jitter_ms = _require_finite_nonneg("jitter_ms", jitter_ms)
@@ -170,6 +223,15 @@ class LinkModel:
         self.loss = loss
         self.reorder = bool(reorder)
         self.seed = int(seed)
+        self.reliable = bool(reliable)
+        if self.reliable and self.reorder:
+            raise ValueError("a reliable link delivers in order: reorder must be False")
+        self.rtt_ms = 2.0 * self.delay_ms if rtt_ms is None else _require_finite_nonneg("rtt_ms", rtt_ms)
+        for name, value in (("mss_bytes", mss_bytes), ("initial_window", initial_window)):
+            if isinstance(value, bool) or int(value) != value or value < 1:
+                raise ValueError(f"{name} must be a whole number >= 1, got {value!r}")
+        self.mss_bytes = int(mss_bytes)
+        self.window = RenoWindow(cwnd=float(initial_window))
 
         loss_seq, jitter_seq = np.random.SeedSequence(self.seed).spawn(2)
         self._loss_rng = np.random.default_rng(loss_seq)
@@ -185,7 +247,8 @@ class LinkModel:
             f"LinkModel(delay_ms={self.delay_ms}, jitter_ms={self.jitter_ms}, "
             f"jitter={self.jitter!r}, rate_mbit={self.rate_mbit}, loss={self.loss}, "
             f"reorder={self.reorder}, seed={self.seed}"
-            + (f", rate_trace={self.rate_trace.name!r}" if self.rate_trace is not None else "") + ")"
+            + (f", rate_trace={self.rate_trace.name!r}" if self.rate_trace is not None else "")
+            + (f", reliable=True, rtt_ms={self.rtt_ms}" if self.reliable else "") + ")"
         )
 
     # -- sending -------------------------------------------------------------
@@ -223,22 +286,17 @@ class LinkModel:
         self.stats.sent += 1
         self.stats.bytes_sent += size_bytes
 
-        dropped = bool(self._loss_rng.random() < self.loss)
-        jitter_s = self._draw_jitter_s()
-        if dropped:
-            self.stats.dropped += 1
-            self.stats.bytes_dropped += size_bytes
-            return None
-
-        if self.rate_trace is not None:
-            start = max(t, self._link_free_at) - self.trace_start
-            depart, self._trace_cursor = self.rate_trace.depart(start, size_bytes, self._trace_cursor)
-            depart += self.trace_start
-            self._link_free_at = depart
+        if self.reliable:
+            jitter_s = self._draw_jitter_s()
+            depart = self._send_segments(t, size_bytes)
         else:
-            depart = max(t, self._link_free_at) + self.serialization_time(size_bytes)
-            if self.rate_mbit is not None:
-                self._link_free_at = depart
+            dropped = bool(self._loss_rng.random() < self.loss)
+            jitter_s = self._draw_jitter_s()
+            if dropped:
+                self.stats.dropped += 1
+                self.stats.bytes_dropped += size_bytes
+                return None
+            depart = self._serialize(t, size_bytes)
         arrive = depart + max(0.0, self.delay_ms * 1e-3 + jitter_s)
         if not self.reorder:
             arrive = max(arrive, self._last_arrival)
@@ -247,6 +305,60 @@ class LinkModel:
         delivery = Delivery(message, size_bytes, t, depart, arrive, seq)
         heapq.heappush(self._in_flight, (arrive, seq, delivery))
         return delivery
+
+    def _serialize(self, t: float, size_bytes: int) -> float:
+        """When ``size_bytes`` offered at ``t`` have left, behind what the link already carries."""
+        if self.rate_trace is not None:
+            start = max(t, self._link_free_at) - self.trace_start
+            depart, self._trace_cursor = self.rate_trace.depart(start, size_bytes, self._trace_cursor)
+            depart += self.trace_start
+            self._link_free_at = depart
+            return depart
+        depart = max(t, self._link_free_at) + self.serialization_time(size_bytes)
+        if self.rate_mbit is not None:
+            self._link_free_at = depart
+        return depart
+
+    def _send_segments(self, t: float, size_bytes: int) -> float:
+        """A reliable link's message: its segments leave as the window allows, lost ones again a round trip later.
+        Returns when its last segment left."""
+        rtt, w, mss = self.rtt_ms * 1e-3, self.window, self.mss_bytes
+        new = max(1, -(-size_bytes // mss))
+        seg_bytes = size_bytes / new
+        resend: collections.deque[tuple[float, int]] = collections.deque()   # (when the loss is known, segments)
+        x = t
+        depart = t
+        while new or resend:
+            if x >= w.round_start + rtt:
+                w.next_round(x)
+            room = w.room()
+            if new:
+                n = min(room, new)
+            else:
+                ready, n_lost = resend[0]
+                if x < ready:
+                    x = ready
+                    continue
+                n = min(room, n_lost)
+            if n == 0:
+                x = w.round_start + rtt   # the window is full: wait for this round's acknowledgements
+                continue
+            if new:
+                new -= n
+            elif n == resend[0][1]:
+                resend.popleft()
+            else:
+                resend[0] = (resend[0][0], resend[0][1] - n)
+            sent_at = max(x, self._link_free_at)
+            depart = max(depart, self._serialize(x, round(n * seg_bytes)))
+            lost = int(self._loss_rng.binomial(n, self.loss)) if self.loss else 0
+            w.used += n
+            w.lost += lost
+            self.stats.segments_sent += n
+            if lost:
+                self.stats.segments_lost += lost
+                resend.append((sent_at + rtt, lost))
+        return depart
 
     # -- receiving -----------------------------------------------------------
 

@@ -4,15 +4,19 @@
 ``target_host:target_port`` and forwards both directions.  It forwards *messages*, not bytes: each direction
 splits its stream with :class:`quadcast.protocol.messages.MessageSplitter` (u32 length framing) and offers every whole
 message to that direction's :class:`quadcast.sim.link.LinkModel` at ``loop.time()``; the message is written out when
-the model says it arrives.  So loss drops whole messages (the receiver's framing never breaks), delay and
-jitter postpone them, and ``rate_mbit`` serializes them one after the other.  A stream that is not valid
-framing (length 0 or above ``max_message_bytes``) closes that connection, with a log line.
+the model says it arrives.  Delay and jitter postpone messages, and ``rate_mbit`` serializes them one after the
+other.  With reliable models (``quadcast link``'s default) loss is of TCP segments: the model sends them again and
+cuts its window, so a loss delays a message and those after it, and slows the stream; with datagram models it drops
+whole messages (the receiver's framing never breaks).  A stream that is not valid framing (length 0 or above
+``max_message_bytes``) closes that connection, with a log line.
 
 The two models are the link: all connections share them (one bottleneck per direction, like netem on an
-interface).  Each direction has a drop-tail queue of ``max_queue_bytes``: a message is dropped (counted as a
-loss) when the bytes waiting to be serialized by the model, plus those waiting in the receiver's socket buffer,
-plus the message itself, exceed it -- unless nothing is queued at all, so one message larger than the queue
-still gets through an idle link.  Without a rate nothing waits to be serialized.
+interface; a reliable model's window is one TCP stream's).  Each direction has a queue of ``max_queue_bytes``:
+the bytes waiting to be serialized by the model (or for a reliable model's window), plus those waiting in the
+receiver's socket buffer.  A reliable direction stops reading from its sender while the queue is full, as TCP's
+flow control would; a datagram one drops a message (counted as a loss) that would overflow it -- unless nothing is
+queued at all, so one message larger than the queue still gets through an idle link.  Without a rate nothing waits
+to be serialized.
 
 When one side sends EOF, the proxy delivers what is still in flight towards the other side, then half-closes
 towards it (``write_eof``), like TCP; the connection is closed once both directions are shut, or
@@ -52,13 +56,16 @@ _READ_CHUNK = 1 << 16
 
 def parse_link_args(delay: str | float = 0, jitter: str | float = 0, rate: str | float | None = None,
                     loss: str | float = 0, *, jitter_dist: str = "uniform", reorder: bool = False,
-                    seed: int = 0, rate_trace: RateTrace | None = None) -> LinkModel:
+                    seed: int = 0, rate_trace: RateTrace | None = None, reliable: bool = False,
+                    rtt: str | float | None = None) -> LinkModel:
     """A :class:`LinkModel` from netem/tc-style CLI strings: ``delay="20ms"``, ``jitter="2ms"``,
     ``rate="50mbit"`` (``None`` or ``""`` = unlimited), ``loss="0.5%"``; or a Mahimahi ``rate_trace`` instead of
-    the rate (its time 0 is when the proxy starts)."""
+    the rate (its time 0 is when the proxy starts). ``reliable`` carries a TCP stream (segments lost and sent
+    again, ``rtt`` its round trip: by default twice the delay)."""
     rate_mbit = None if rate is None or (isinstance(rate, str) and not rate.strip()) else parse_rate_mbit(rate)
     return LinkModel(delay_ms=parse_duration_ms(delay), jitter_ms=parse_duration_ms(jitter), jitter=jitter_dist,
-                     rate_mbit=rate_mbit, loss=parse_loss(loss), reorder=reorder, seed=seed, rate_trace=rate_trace)
+                     rate_mbit=rate_mbit, loss=parse_loss(loss), reorder=reorder, seed=seed, rate_trace=rate_trace,
+                     reliable=reliable, rtt_ms=None if rtt is None else parse_duration_ms(rtt))
 
 
 @dataclass
@@ -112,7 +119,7 @@ class ShapedDirection:
         self.stats.messages_in += 1
         self.stats.bytes_in += len(raw)
         waiting = self.queued_bytes(now) + conn.write_buffer_size(self.name)
-        if waiting > 0 and waiting + len(raw) > self.max_queue_bytes:
+        if not self.link.reliable and waiting > 0 and waiting + len(raw) > self.max_queue_bytes:
             self._drop(len(raw), queue=True)
             return
         d = self.link.send(now, (conn, raw), len(raw))
@@ -124,6 +131,18 @@ class ShapedDirection:
             self._backlog_bytes += len(raw)
         conn.in_flight[self.name] += 1
         self._wake.set()
+
+    async def wait_for_room(self, conn) -> None:
+        """A reliable link's sender stops while its queue holds ``max_queue_bytes`` or more, as TCP's flow control
+        stops a writer, instead of losing messages: the proxy reads no further and the sending side's socket
+        fills."""
+        loop = asyncio.get_running_loop()
+        while not conn.closed:
+            now = loop.time()
+            if self.queued_bytes(now) + conn.write_buffer_size(self.name) < self.max_queue_bytes:
+                return
+            until = self._backlog[0][0] if self._backlog else now + 0.005   # the receiver's buffer drains itself
+            await asyncio.sleep(max(until - now, 0.001))
 
     def _drop(self, size: int, queue: bool) -> None:
         self.stats.messages_dropped += 1
@@ -184,6 +203,8 @@ class _Connection:
                     break
                 for raw in splitter.feed_raw(data):
                     shaped.submit(self, raw, loop.time())
+                if shaped.link.reliable:
+                    await shaped.wait_for_room(self)
         except ProtocolError as exc:
             self.proxy.stats.framing_errors += 1
             log.warning("proxy %s: closing connection from %s: invalid framing on the %s stream: %s",

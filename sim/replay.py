@@ -4,7 +4,8 @@ This is the virtual-time driver of the session core (:mod:`quadcast.protocol.ses
 client drive the same core on their event loops. The client follows the trace at `client_hz` (60) and sends its
 pose at `server_hz` (30) over the uplink; the server session decides, on each pose it receives, to render and
 encode a frame for the pose predicted at the time the frame will be shown, and the payload crosses the downlink
-(delay + jitter + size/rate, loss); the client session decides which arrived payloads to apply (dependent frames
+(delay + jitter + size/rate, loss of whole messages, or with ``tcp`` of a TCP stream's segments, which are sent
+again: :mod:`quadcast.sim.link`); the client session decides which arrived payloads to apply (dependent frames
 wait for a self-contained one after a loss) and when to ask for a reference, and the client shows its newest state
 reprojected to its true pose. Nothing depends on how fast the machine is: when it is slower than real time,
 virtual time simply waits. The same seed gives the same run.
@@ -47,6 +48,7 @@ class ReplayConfig:
     jitter_ms: float = 10.0
     rate_mbit: float | None = None
     loss: float = 0.0
+    tcp: bool = False    # the downlink is one TCP stream: loss is of its segments, sent again (a reliable LinkModel)
     client_hz: float = 60.0
     server_hz: float = 30.0
     predict: bool = True
@@ -120,7 +122,7 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
     the state is updated on every frame regardless. `on_display` receives each shown frame."""
     up = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=None, loss=0.0, seed=config.seed)
     down = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=config.rate_mbit, loss=config.loss,
-                     seed=config.seed + 1, rate_trace=config.rate_trace)
+                     seed=config.seed + 1, rate_trace=config.rate_trace, reliable=config.tcp)
     back = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=None, loss=0.0, seed=config.seed + 2)  # reports
     server_session = ServerSession(config.server_session())
     client_session = ClientSession(config.reference_timeout_s)

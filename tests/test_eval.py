@@ -58,6 +58,19 @@ def test_loss_makes_the_client_ask_for_references_and_recover():
     assert s["frames_applied"] > 0 and s["flip"] is not None
 
 
+def test_loss_over_tcp_loses_no_frame_but_makes_them_late(tmp_path):
+    # 5% loss of a TCP stream's segments: no frame is lost, but they come late (some after the run's end)
+    kw = dict(method="quasar", latency_ms=20, jitter_ms=0, seed=3, tcp=True, **{**TINY, "frames": 60, "every": 6})
+    lossy = run_eval(EvalSpec(loss=0.05, **kw), tmp_path / "lossy")
+    run_eval(EvalSpec(**kw), tmp_path / "clean")
+    assert lossy["tcp"] and lossy["frames_lost"] == 0 and lossy["reference_requests"] == 0
+    assert lossy["frames_applied"] > 0
+
+    def mean_age(run):
+        return np.mean([float(r["age_ms"]) for r in csv.DictReader((tmp_path / run / "frames.csv").open())])
+    assert mean_age("lossy") > mean_age("clean") + 20
+
+
 def test_bad_eval_input_is_named():
     with pytest.raises(ValueError, match="unknown method"):
         run_eval(EvalSpec(method="teleport", **TINY))

@@ -5,7 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from quadcast.sim.link import Delivery, LinkModel, parse_bytes, parse_duration_ms, parse_loss, parse_rate_mbit
+from quadcast.sim.link import (Delivery, LinkModel, RenoWindow, parse_bytes, parse_duration_ms, parse_loss,
+                               parse_rate_mbit)
 
 
 def test_delivery_time_is_delay_plus_serialization():
@@ -246,3 +247,86 @@ def test_parse_helpers_reject_bad_text_naming_it(func, text):
 def test_parse_loss_suggests_percent_for_bare_numbers_above_one():
     with pytest.raises(ValueError, match="did you mean '5%'"):
         parse_loss("5")
+
+
+# -- a reliable (TCP) link ---------------------------------------------------------------------------------------------
+
+def test_tcp_link_sends_a_window_per_round_trip_in_slow_start():
+    link = LinkModel(delay_ms=20, reliable=True, mss_bytes=1000, initial_window=10)
+    # 45 segments: 10, then 20, then the last 15 of a window of 40 -- two round trips (80 ms) before the last leaves
+    d = link.send(0.0, "a", 45_000)
+    assert d.t_depart == pytest.approx(0.080) and d.t_arrive == pytest.approx(0.100)
+    assert link.window.cwnd == 40 and link.stats.segments_sent == 45
+    # the next message, once the last round's acknowledgements are back, finds the window it left (not full: no
+    # growth) and fits in one round
+    d = link.send(1.0, "b", 30_000)
+    assert d.t_depart == pytest.approx(1.0) and link.window.cwnd == 40
+
+
+def test_tcp_link_delays_a_message_by_a_round_trip_each_time_its_segment_is_lost():
+    link = LinkModel(delay_ms=10, reliable=True, loss=0.1, seed=2, mss_bytes=1000)
+    delayed = 0
+    for i in range(100):   # 0.5 s apart: the link is idle, and the window (2 segments at least) never limits them
+        lost_before = link.stats.segments_lost
+        d = link.send(0.5 * i, i, 1_000)
+        extra = (d.latency - 0.010) / 0.020
+        if link.stats.segments_lost > lost_before:
+            delayed += 1
+            assert extra >= 1 - 1e-9 and extra == pytest.approx(round(extra))
+        else:
+            assert extra == pytest.approx(0.0)
+    assert delayed >= 5
+
+
+def test_tcp_link_never_drops_and_sends_lost_segments_again_a_round_trip_later():
+    def arrivals(loss, seed):
+        link = LinkModel(delay_ms=10, reliable=True, loss=loss, seed=seed, mss_bytes=1000)
+        return link, [link.send(0.05 * i, i, 5_000) for i in range(200)]
+    clean, base = arrivals(0.0, 1)
+    lossy, got = arrivals(0.05, 1)
+    assert all(d is not None for d in got) and [d.message for d in got] == list(range(200))
+    assert lossy.stats.dropped == 0 and lossy.stats.segments_lost > 0
+    assert clean.stats.segments_lost == 0 and all(d.latency == pytest.approx(0.010) for d in base)
+    late = [d.latency for d in got if d.latency > 0.0101]
+    # a loss costs its message at least one round trip (20 ms), and a later message waits for an earlier one
+    assert late and min(late) >= 0.030 - 1e-9
+    assert all(b.t_arrive >= a.t_arrive for a, b in zip(got, got[1:]))
+
+
+def test_tcp_window_halves_after_a_lossy_round_and_grows_a_segment_a_round_after():
+    w = RenoWindow(cwnd=20.0)
+    w.next_round(0.0)
+    w.used, w.lost = 20, 1
+    w.next_round(0.1)
+    assert (w.cwnd, w.ssthresh) == (10.0, 10.0)
+    w.used = 10
+    w.next_round(0.2)
+    assert w.cwnd == pytest.approx(11.0)           # congestion avoidance: one segment a full round
+    w.used = 3
+    w.next_round(0.3)
+    assert w.cwnd == pytest.approx(11.0)           # a round that did not use the window does not grow it
+
+
+@pytest.mark.parametrize("loss", [0.005, 0.02])
+def test_tcp_link_rate_under_random_loss_follows_the_square_root_law(loss):
+    # Mathis et al. (1997): a Reno stream's rate is about MSS / RTT * sqrt(3 / (2 p)) under random loss p
+    link = LinkModel(delay_ms=20, reliable=True, loss=loss, seed=5)
+    size = 40_000_000   # long enough that slow start's first rounds do not count
+    d = link.send(0.0, "bulk", size)
+    rate = size / d.t_depart
+    predicted = 1448 / 0.040 * (1.5 / loss) ** 0.5
+    assert 0.6 * predicted < rate < 1.5 * predicted
+    assert link.stats.segments_lost == pytest.approx(link.stats.segments_sent * loss, rel=0.3)
+
+
+def test_tcp_link_still_serializes_at_the_rate():
+    link = LinkModel(delay_ms=5, rate_mbit=8, reliable=True, initial_window=1000)
+    d = link.send(0.0, "x", 100_000)
+    assert d.t_depart == pytest.approx(0.1, rel=0.02)
+
+
+@pytest.mark.parametrize("kw, word", [({"reorder": True}, "reorder"), ({"mss_bytes": 0}, "mss_bytes"),
+                                      ({"initial_window": 0.5}, "initial_window"), ({"rtt_ms": -1}, "rtt_ms")])
+def test_tcp_link_rejects_bad_parameters(kw, word):
+    with pytest.raises(ValueError, match=word):
+        LinkModel(reliable=True, **kw)

@@ -210,7 +210,8 @@ def test_one_percent_loss_makes_the_client_resync(server, tmp_path):
     Trace("still", times, np.tile([0.0, 1.6, 6.0], (times.size, 1)), np.zeros((times.size, 3))).save(trace)
     seed = _lossy_seed("1%")
     link = Child("link", quadcast_argv("link", "--listen", 0, "--to", f"127.0.0.1:{server.port}", "--delay", "5ms",
-                                       "--jitter", "0ms", "--loss", "1%", "--seed", seed), tmp_path / "link.log")
+                                       "--jitter", "0ms", "--loss", "1%", "--drop-messages", "--seed", seed),
+                 tmp_path / "link.log")
     try:
         link_port = int(link.wait_for(LISTENING, START_TIMEOUT).group(2))
         out = tmp_path / "lossy"

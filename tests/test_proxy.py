@@ -10,6 +10,7 @@ import socket
 import pytest
 
 from quadcast.protocol.messages import Bye, Frame, MessageDecoder, PoseUpdate, encode_message
+from quadcast.cli import main
 from quadcast.sim.link import LinkModel
 from quadcast.sim.proxy import LinkProxy, parse_link_args
 
@@ -247,6 +248,25 @@ def test_queue_overflow_drops_messages_as_losses():
     run(body())
 
 
+def test_a_full_tcp_queue_stops_the_sender_instead_of_dropping():
+    async def body():
+        # the same burst through a TCP model at 10% segment loss: nothing is lost, and the proxy stops reading the
+        # sender while its 12 000-byte queue is full (TCP's flow control), so it never holds the whole burst
+        up = LinkModel(delay_ms=2, rate_mbit=1, loss=0.1, seed=3, reliable=True)
+        echo, proxy, reader, writer = await proxied_echo(up, LinkModel(), max_queue_bytes=12_000)
+        msgs = [Frame(bytes([i]) * (5000 - 5)) for i in range(20)]
+        writer.write(b"".join(encode_message(m) for m in msgs))
+        await asyncio.sleep(0.1)
+        assert proxy.stats.up.messages_in < 20
+        got = await read_messages(reader, MessageDecoder(), 20)
+        assert got == msgs
+        st = proxy.stats.up
+        assert st.messages_dropped == st.dropped_queue == st.dropped_loss == 0
+        assert up.stats.segments_lost > 0 and up.stats.dropped == 0
+        await teardown(echo, proxy, writer)
+    run(body())
+
+
 def test_unreachable_target_closes_the_client(caplog):
     async def body():
         with socket.socket() as s:
@@ -300,3 +320,11 @@ def test_a_rate_trace_shapes_the_downlink_from_the_proxy_start(tmp_path):
         assert loop.time() - t0 >= 0.095
         await teardown(echo, proxy, writer)
     run(body())
+
+
+def test_the_link_command_builds_tcp_models_and_refuses_drop_messages_with_webrtc(capsys):
+    from quadcast.cli.live import link_models
+    up, down = link_models("20ms", "0ms", None, "1%", 0, reliable=True)
+    assert up.reliable and down.reliable and down.rtt_ms == 40.0
+    assert main(["link", "--listen", "0", "--to", "127.0.0.1:9", "--webrtc", "--drop-messages"]) == 2
+    assert "--drop-messages is for the TCP link" in capsys.readouterr().err

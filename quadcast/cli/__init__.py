@@ -219,7 +219,8 @@ def _eval_spec(args):
     return EvalSpec(scene=args.scene, trace=args.trace, anchor=args.anchor, start=start, method=args.method,
                     latency_ms=args.latency,
                     jitter_ms=args.jitter, rate_mbit=parse_rate_mbit(args.rate) if args.rate else None,
-                    loss=parse_loss(args.loss) if args.loss else 0.0, viewcell_m=args.viewcell, width=w, height=h,
+                    loss=parse_loss(args.loss) if args.loss else 0.0, tcp=args.tcp, viewcell_m=args.viewcell,
+                    width=w, height=h,
                     frames=args.frames, every=args.every, stereo=args.stereo, seed=args.seed,
                     predict=not args.no_predict, crf=args.crf, rate_trace=args.rate_trace, adapt=args.adapt,
                     target_mbps=args.target_mbps, point=args.point, ladder=args.ladder, gaze=args.gaze,
@@ -404,7 +405,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ladder", help="the operating points' ladder file (default: the measured one shipped)")
     p.add_argument("--gaze", help="a gaze trace ('t_ms x_deg y_deg' per line, angles from the view axis): foveated "
                                   "points and FLIP over the central 20 degrees follow it (default: the view centre)")
-    p.add_argument("--loss", help="downlink message loss, e.g. 0.5%%")
+    p.add_argument("--loss", help="downlink loss, e.g. 0.5%%: of whole messages, or with --tcp of TCP segments")
+    p.add_argument("--tcp", action="store_true",
+                   help="the downlink is one TCP stream, as `quadcast link` models it: --loss is of its segments, "
+                        "which are sent again a round trip later, and a Reno window paces it")
     p.add_argument("--server-frame-ms", type=float, default=0.0,
                    help="virtual time the server takes per frame (e.g. a live server's measured frame time, to "
                         "replay the frame rate it kept; default 0: it keeps the 30 Hz pose rate)")

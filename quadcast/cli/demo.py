@@ -308,17 +308,19 @@ def run_demo(out: Path, quiet: bool = False, view: DemoView = DemoView(), record
         if compare:
             for child in reversed(children):      # the virtual-time run gets the machine to itself
                 child.stop()
-            v = virtual_twin(out / "virtual", view, quiet)
+            tcp = transport == "tcp"     # the twin's downlink as the live link models it: one TCP stream
+            v = virtual_twin(out / "virtual", view, quiet, tcp=tcp)
             ratio = s["flip"] / v["flip"] if s.get("flip") is not None and v.get("flip") else None
             print(f"demo: the same trace in virtual time (quadcast eval {' '.join(map(str, view.trace_args()))} "
-                  f"--method quasar --latency 20 --jitter 10 --size {size} --frames {v['display_frames']} --every "
+                  f"--method quasar --latency 20 --jitter 10{' --tcp' if tcp else ''} --size {size} --frames "
+                  f"{v['display_frames']} --every "
                   f"{v['every']}): {v['mbps']:.2f} Mbps, {v['server_frames'] / (v['display_frames'] / 60):.1f} "
                   f"server frames/s, FLIP {fmt(v['flip'], '.4f')}  SSIM {fmt(v['ssim'], '.4f')}  PSNR "
                   f"{fmt(v['psnr'], '.2f')} dB; live FLIP / virtual-time FLIP = {fmt(ratio, '.2f')} "
                   f"(report -> {out / 'virtual' / 'report.html'})")
             if s.get("server_frames"):
                 frame_ms = round(1e3 * s["duration_s"] / s["server_frames"], 1)
-                slow = virtual_twin(out / "virtual_live_rate", view, quiet, server_frame_ms=frame_ms)
+                slow = virtual_twin(out / "virtual_live_rate", view, quiet, server_frame_ms=frame_ms, tcp=tcp)
                 ratio = s["flip"] / slow["flip"] if s.get("flip") is not None and slow.get("flip") else None
                 print(f"demo: again with the server taking the live run's {frame_ms:g} ms a frame received "
                       f"(... --server-frame-ms {frame_ms:g}): "
@@ -339,16 +341,19 @@ def run_demo(out: Path, quiet: bool = False, view: DemoView = DemoView(), record
         signal.signal(signal.SIGTERM, previous)
 
 
-def virtual_twin(out: Path, view: DemoView = DemoView(), quiet: bool = False, server_frame_ms: float = 0.0) -> dict:
+def virtual_twin(out: Path, view: DemoView = DemoView(), quiet: bool = False, server_frame_ms: float = 0.0,
+                 tcp: bool = False) -> dict:
     """The demo's run in virtual time: quasar on `view` (its trace in its scene, its duration at 60 Hz, its size),
-    20±10 ms, about 60 frames scored; the server keeps its 30 Hz whatever the machine's speed, or, with
-    `server_frame_ms`, takes that much virtual time per frame. Returns its summary."""
+    20±10 ms (with `tcp`, one TCP stream's window on the downlink, as ``quadcast link`` models it), about 60 frames
+    scored; the server keeps its 30 Hz whatever the machine's speed, or, with `server_frame_ms`, takes that much
+    virtual time per frame. Returns its summary."""
     from quadcast.render.camera import parse_size
     from quadcast.sim.evaluate import EvalSpec, run_eval
     view = view.resolved()
     w, h = parse_size(view.size)
     frames = max(1, int(round(view.duration * 60)))
     spec = EvalSpec(scene=view.scene, trace=view.trace, anchor=view.anchor, start=view.start, method="quasar",
-                    latency_ms=20.0, jitter_ms=10.0, width=w, height=h, frames=frames, every=max(1, frames // 60),
+                    latency_ms=20.0, jitter_ms=10.0, tcp=tcp, width=w, height=h, frames=frames,
+                    every=max(1, frames // 60),
                     server_frame_ms=server_frame_ms)
     return run_eval(spec, out, quiet=quiet)

@@ -160,15 +160,17 @@ def cmd_client(args) -> int:
 
 # -------------------------------------------------------------------------------------------------- link
 
-def link_models(delay: str, jitter: str, rate: str | None, loss: str, seed: int, rate_trace: str | None = None):
+def link_models(delay: str, jitter: str, rate: str | None, loss: str, seed: int, rate_trace: str | None = None,
+                reliable: bool = False):
     """The (up, down) :class:`quadcast.sim.link.LinkModel` pair of ``quadcast link``: the same shaping both ways, seeds
     ``seed`` (client -> server) and ``seed + 1`` (server -> client); with ``rate_trace`` (a Mahimahi file or
-    builtin:NAME) the server -> client direction follows it instead of ``rate``, from the link's start."""
+    builtin:NAME) the server -> client direction follows it instead of ``rate``, from the link's start. ``reliable``
+    models the TCP stream each way (segments lost and sent again) rather than dropping whole messages."""
     from quadcast.sim.proxy import parse_link_args
     from quadcast.sim.ratetrace import resolve_rate_trace
-    down = parse_link_args(delay, jitter, None if rate_trace else rate, loss, seed=seed + 1,
+    down = parse_link_args(delay, jitter, None if rate_trace else rate, loss, seed=seed + 1, reliable=reliable,
                            rate_trace=resolve_rate_trace(rate_trace) if rate_trace else None)
-    return parse_link_args(delay, jitter, rate, loss, seed=seed), down
+    return parse_link_args(delay, jitter, rate, loss, seed=seed, reliable=reliable), down
 
 
 def cmd_link(args) -> int:
@@ -179,7 +181,10 @@ def cmd_link(args) -> int:
     _setup_logging(args.verbose)
     to_host, to_port = parse_hostport(args.to)
     check_bind(args.host, "x" if args.public else "", allow_plaintext_token=True)   # the link holds no token
-    up, down = link_models(args.delay, args.jitter, args.rate, args.loss, args.seed, args.rate_trace)
+    if args.webrtc and args.drop_messages:
+        raise ValueError("--drop-messages is for the TCP link; with --webrtc every loss is a datagram's")
+    tcp = not args.webrtc and not args.drop_messages
+    up, down = link_models(args.delay, args.jitter, args.rate, args.loss, args.seed, args.rate_trace, reliable=tcp)
     queue = parse_bytes(args.queue)
     if args.webrtc:
         proxy = RtcLinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down, max_queue_bytes=queue)
@@ -192,7 +197,9 @@ def cmd_link(args) -> int:
         s = proxy.stats
         print(f"link: stopped; {units} up {s.up.messages_forwarded} forwarded / {s.up.messages_dropped} dropped, "
               f"down {s.down.messages_forwarded} forwarded / {s.down.messages_dropped} dropped, "
-              f"{s.connections_accepted} {conns}", flush=True)
+              f"{s.connections_accepted} {conns}"
+              + (f"; TCP segments lost (and sent again) up {up.stats.segments_lost} of {up.stats.segments_sent}, "
+                 f"down {down.stats.segments_lost} of {down.stats.segments_sent}" if tcp else ""), flush=True)
 
     async def main() -> None:
         await proxy.start()
@@ -201,7 +208,9 @@ def cmd_link(args) -> int:
             rate = f"{rate} up, {args.rate_trace} down"
         print(f"link: listening on {args.host}:{proxy.port} -> {to_host}:{to_port} ("
               f"{'webrtc: signalling and UDP, ' if args.webrtc else ''}delay {args.delay}, jitter "
-              f"{args.jitter}, rate {rate}, loss {args.loss}, queue {args.queue})", flush=True)
+              f"{args.jitter}, rate {rate}, loss {args.loss}"
+              f"{' of TCP segments' if tcp else ' of whole messages' if not args.webrtc else ''}, queue {args.queue})",
+              flush=True)
         await proxy.serve_forever()
 
     asyncio.run(_run_until_signal(main(), on_stop=report))
@@ -336,10 +345,17 @@ def add_live_commands(sub) -> None:
     p.add_argument("--rate-trace", help="server -> client capacity over time instead of --rate: a Mahimahi trace "
                                         "(one line per 1500-byte delivery opportunity, ms; it repeats) or "
                                         "builtin:const-20|step-100-15-100|sawtooth-10-40")
-    p.add_argument("--loss", default="0%", help="message loss per direction, e.g. 0.5%% (datagrams with --webrtc)")
+    p.add_argument("--loss", default="0%",
+                   help="loss per direction, e.g. 0.5%%: of TCP segments, which TCP sends again a round trip later "
+                        "and halves its window for (its window is modelled, Reno's); of datagrams with --webrtc; of "
+                        "whole messages with --drop-messages")
+    p.add_argument("--drop-messages", action="store_true",
+                   help="TCP link: drop whole messages (what a TCP connection never does; for trying the client's "
+                        "recovery from a lost frame) instead of modelling TCP's retransmissions and window")
     p.add_argument("--queue", default="16m",
-                   help="drop-tail queue per direction, bytes: what may wait for --rate (and in the receiver's socket "
-                        "buffer) before a message or datagram is dropped, e.g. 64k (default 16m)")
+                   help="queue per direction, bytes: what may wait for --rate or TCP's window (and in the receiver's "
+                        "socket buffer). Full, the TCP link stops reading from the sender, as TCP's flow control "
+                        "does; with --webrtc or --drop-messages it drops (drop-tail). E.g. 64k (default 16m)")
     p.add_argument("--webrtc", action="store_true",
                    help="for `--transport webrtc`: --to is the server's signalling port; the link answers the "
                         "client's POST /offer, puts its own UDP sockets in both descriptions and shapes every "
