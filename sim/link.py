@@ -73,6 +73,9 @@ __all__ = [
 
 JitterDistribution = Literal["uniform", "normal"]
 
+MAX_RELIABLE_LOSS = 0.5
+"""A reliable link's highest segment loss: a 64 MiB message takes its model about 0.2 s there (10 s at 99%)."""
+
 
 @dataclass(frozen=True)
 class Delivery:
@@ -226,6 +229,10 @@ class LinkModel:
         self.reliable = bool(reliable)
         if self.reliable and self.reorder:
             raise ValueError("a reliable link delivers in order: reorder must be False")
+        if self.reliable and self.loss > MAX_RELIABLE_LOSS:
+            raise ValueError(f"a reliable (TCP) link's loss must be at most {MAX_RELIABLE_LOSS:.0%}, got "
+                             f"{self.loss:.1%}: TCP all but stops beyond it (a datagram link drops whole messages at "
+                             "any rate below 100%)")
         self.rtt_ms = 2.0 * self.delay_ms if rtt_ms is None else _require_finite_nonneg("rtt_ms", rtt_ms)
         for name, value in (("mss_bytes", mss_bytes), ("initial_window", initial_window)):
             if isinstance(value, bool) or int(value) != value or value < 1:

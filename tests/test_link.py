@@ -1,5 +1,7 @@
 """Tests for sim.link: netem-like link model in virtual time and CLI parse helpers."""
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -326,7 +328,29 @@ def test_tcp_link_still_serializes_at_the_rate():
 
 
 @pytest.mark.parametrize("kw, word", [({"reorder": True}, "reorder"), ({"mss_bytes": 0}, "mss_bytes"),
-                                      ({"initial_window": 0.5}, "initial_window"), ({"rtt_ms": -1}, "rtt_ms")])
+                                      ({"initial_window": 0.5}, "initial_window"), ({"rtt_ms": -1}, "rtt_ms"),
+                                      ({"loss": 0.6}, "at most 50%")])
 def test_tcp_link_rejects_bad_parameters(kw, word):
     with pytest.raises(ValueError, match=word):
         LinkModel(reliable=True, **kw)
+
+
+@settings(max_examples=150, deadline=None)
+@given(sends=st.lists(st.tuples(st.floats(0.0, 0.2), st.integers(0, 200_000)), min_size=1, max_size=30),
+       delay=st.floats(0.0, 50.0), jitter=st.floats(0.0, 20.0), rate=st.none() | st.floats(0.5, 500.0),
+       loss=st.floats(0.0, 0.5), seed=st.integers(0, 2**16))
+def test_tcp_link_delivers_every_message_once_in_order_no_sooner_than_the_wire_allows(sends, delay, jitter, rate,
+                                                                                    loss, seed):
+    link = LinkModel(delay_ms=delay, jitter_ms=jitter, rate_mbit=rate, loss=loss, seed=seed, reliable=True)
+    t, got = 0.0, []
+    for i, (dt, size) in enumerate(sends):
+        t += dt
+        d = link.send(t, i, size)
+        assert d is not None and d.t_depart >= t + link.serialization_time(size) * (1 - 1e-9) - 1e-12
+        assert d.t_arrive >= d.t_depart
+        got.append(d)
+    assert [d.message for d in link.poll(math.inf)] == list(range(len(sends)))
+    assert all(b.t_arrive >= a.t_arrive for a, b in zip(got, got[1:]))
+    segments = sum(max(1, -(-size // link.mss_bytes)) for _, size in sends)
+    assert link.stats.segments_sent == segments + link.stats.segments_lost
+    assert link.stats.dropped == 0 and link.window.cwnd >= 2.0
