@@ -93,6 +93,9 @@ class ServerConfig:
     retry_after: float = 5.0            # a busy server's hint to the client
     max_message_bytes: int = 64 * 1024  # client -> server messages are small (Hello, poses, requests)
     queue_frames: int = 3               # per-session send queue
+    # TCP: the next frame is taken from the queue once at most this many bytes of the last ones wait in the kernel
+    # (Linux), so frames queue where stale ones are dropped, not behind a slow link (TCP_NOTSENT_LOWAT's idea)
+    unsent_bytes: int = 16 * 1024
     tls_cert: str | None = None         # PEM certificate chain: serve TLS (TCP, and WebRTC's signalling)
     tls_key: str | None = None          # its PEM private key (None: in tls_cert)
     allow_plaintext_token: bool = False  # a token on a non-loopback bind needs TLS unless this is set
@@ -129,6 +132,8 @@ class ServerConfig:
             raise ValueError(f"--spare-workers: expected 0..8, got {self.spare_workers}")
         if self.queue_frames < 1 or self.max_peer_connections < 1:
             raise ValueError("--max-peer-connections and the queue length must be >= 1")
+        if self.unsent_bytes < 0:
+            raise ValueError(f"unsent_bytes: expected >= 0, got {self.unsent_bytes}")
         if self.pace_mbit is not None and not (math.isfinite(self.pace_mbit) and self.pace_mbit > 0):
             raise ValueError(f"--pace: expected a rate > 0 Mbit/s, got {self.pace_mbit}")
         if self.tls_key is not None and self.tls_cert is None:
@@ -605,6 +610,7 @@ class Session:
 
     async def _sender(self) -> None:
         while True:
+            await self.channel.wait_sent(self.cfg.unsent_bytes)
             frame = self.core.next_to_send()
             if frame is None:
                 self._queued.clear()

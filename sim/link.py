@@ -29,7 +29,9 @@ the probability that each segment of ``mss_bytes`` is lost, and the sender's win
 A message's segments leave at most a window per round trip (``rtt_ms``, twice ``delay_ms`` unless given): the window
 starts at ``initial_window`` segments, doubles each round trip that used it all (slow start), grows by one segment
 a round trip past ``ssthresh`` and halves after a round trip with a loss. A lost segment goes again one round trip
-after it went, so the message (and every later one: in-order delivery) waits for it. Queueing in the bottleneck
+after it went, so the message (and every later one: in-order delivery) waits for it. With a rate and
+``queue_bytes``, segments that find the drop-tail queue before the rate full are lost too, so the window stops
+growing where the queue overflows, as Reno's does over a real bottleneck. Queueing in the bottleneck
 does not lengthen the round trip, and the window does not restart after idle (Linux's
 ``tcp_slow_start_after_idle=0``).
 
@@ -111,7 +113,8 @@ class LinkStats:
     bytes_dropped: int = 0
     bytes_delivered: int = 0
     segments_sent: int = 0        # reliable links: TCP segments put on the wire, those sent again included
-    segments_lost: int = 0        # reliable links: segments lost (and sent again)
+    segments_lost: int = 0        # reliable links: segments lost (and sent again), overflowed ones included
+    segments_overflowed: int = 0  # reliable links: segments the bottleneck's full queue dropped
 
 
 @dataclass
@@ -183,6 +186,9 @@ class LinkModel:
         A reliable link's segment size.
     initial_window:
         A reliable link's first window, in segments (Linux: 10).
+    queue_bytes:
+        A reliable link's drop-tail queue before the rate (``None``: it takes everything): a segment that finds it
+        full is lost, and sent again as any other.
     """
 
     def __init__(
@@ -200,6 +206,7 @@ class LinkModel:
         rtt_ms: float | None = None,
         mss_bytes: int = 1448,
         initial_window: int = 10,
+        queue_bytes: int | None = None,
     ) -> None:
         self.delay_ms = _require_finite_nonneg("delay_ms", delay_ms)
         self.jitter_ms = _require_finite_nonneg("jitter_ms", jitter_ms)
@@ -239,6 +246,13 @@ class LinkModel:
                 raise ValueError(f"{name} must be a whole number >= 1, got {value!r}")
         self.mss_bytes = int(mss_bytes)
         self.window = RenoWindow(cwnd=float(initial_window))
+        if queue_bytes is not None and (not self.reliable or isinstance(queue_bytes, bool)
+                                        or int(queue_bytes) != queue_bytes or queue_bytes < self.mss_bytes):
+            raise ValueError(f"queue_bytes is a reliable link's bottleneck queue, at least one segment "
+                             f"({self.mss_bytes} bytes), got {queue_bytes!r}")
+        self.queue_bytes = None if queue_bytes is None else int(queue_bytes)
+        self._bottleneck: collections.deque[tuple[float, int]] = collections.deque()   # (departs, bytes) queued
+        self._bottleneck_bytes = 0
 
         loss_seq, jitter_seq = np.random.SeedSequence(self.seed).spawn(2)
         self._loss_rng = np.random.default_rng(loss_seq)
@@ -357,8 +371,18 @@ class LinkModel:
             else:
                 resend[0] = (resend[0][0], resend[0][1] - n)
             sent_at = max(x, self._link_free_at)
-            depart = max(depart, self._serialize(x, round(n * seg_bytes)))
-            lost = int(self._loss_rng.binomial(n, self.loss)) if self.loss else 0
+            if w.used == 0:   # the round's acknowledgements come back a round trip after its first segment left
+                w.round_start = max(w.round_start, sent_at)
+            fits = n if self.queue_bytes is None else self._segments_fitting(x, n, seg_bytes)
+            if fits:
+                batch = round(fits * seg_bytes)
+                batch_departs = self._serialize(x, batch)
+                depart = max(depart, batch_departs)
+                if self.queue_bytes is not None and batch_departs > x:
+                    self._bottleneck.append((batch_departs, batch))
+                    self._bottleneck_bytes += batch
+            lost = n - fits + (int(self._loss_rng.binomial(fits, self.loss)) if self.loss else 0)
+            self.stats.segments_overflowed += n - fits
             w.used += n
             w.lost += lost
             self.stats.segments_sent += n
@@ -366,6 +390,25 @@ class LinkModel:
                 self.stats.segments_lost += lost
                 resend.append((sent_at + rtt, lost))
         return depart
+
+    def _segments_fitting(self, t: float, n: int, seg_bytes: float) -> int:
+        """How many of ``n`` segments sent at ``t`` the bottleneck's queue takes. Acknowledgements release a window
+        over a round trip, not at once, and a fixed rate drains the queue meanwhile: only what the window sends
+        beyond the rate (its excess over rate x round trip) fills it. Under a rate trace nothing is credited."""
+        room = self._queue_room(t)
+        per_segment = max(1.0, seg_bytes)
+        if self.rate_mbit is not None:
+            excess = 1.0 - self.rate_mbit * 1e6 / 8 * self.rtt_ms * 1e-3 / max(1.0, self.window.cwnd * self.mss_bytes)
+            if excess <= 0.0:
+                return n
+            per_segment *= excess
+        return min(n, int(room / per_segment))
+
+    def _queue_room(self, t: float) -> int:
+        """Bytes the bottleneck's drop-tail queue still takes at ``t`` (a reliable link with ``queue_bytes``)."""
+        while self._bottleneck and self._bottleneck[0][0] <= t:
+            self._bottleneck_bytes -= self._bottleneck.popleft()[1]
+        return max(0, self.queue_bytes - self._bottleneck_bytes)
 
     # -- receiving -----------------------------------------------------------
 
@@ -386,6 +429,11 @@ class LinkModel:
     def pending(self) -> int:
         """Number of messages in flight (sent, not dropped, not yet polled)."""
         return len(self._in_flight)
+
+    @property
+    def window_bytes(self) -> int:
+        """A reliable link's congestion window in bytes (what one round trip carries now)."""
+        return int(self.window.cwnd * self.mss_bytes)
 
     @property
     def link_free_at(self) -> float:

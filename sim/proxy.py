@@ -11,12 +11,14 @@ whole messages (the receiver's framing never breaks).  A stream that is not vali
 ``max_message_bytes``) closes that connection, with a log line.
 
 The two models are the link: all connections share them (one bottleneck per direction, like netem on an
-interface; a reliable model's window is one TCP stream's).  Each direction has a queue of ``max_queue_bytes``:
-the bytes waiting to be serialized by the model (or for a reliable model's window), plus those waiting in the
-receiver's socket buffer.  A reliable direction stops reading from its sender while the queue is full, as TCP's
-flow control would; a datagram one drops a message (counted as a loss) that would overflow it -- unless nothing is
-queued at all, so one message larger than the queue still gets through an idle link.  Without a rate nothing waits
-to be serialized.
+interface; a reliable model's window is one TCP stream's).  A datagram direction has a drop-tail queue of
+``max_queue_bytes``: the bytes waiting to be serialized by the model plus those waiting in the receiver's socket
+buffer; a message that would overflow it is dropped (counted as a loss) -- unless nothing is queued at all, so one
+message larger than the queue still gets through an idle link.  Without a rate nothing waits to be serialized.  A
+reliable model has its own queue (its ``queue_bytes``: segments that overflow it are lost and sent again), and its
+direction stops reading from the sender while a window's worth waits to leave, as a TCP sender's socket buffer
+would: the sending side's own socket fills (the proxy's receive buffer on it is small, see
+:data:`RELIABLE_RCVBUF_BYTES`), and a sender that watches its unsent bytes sees the link's pace.
 
 When one side sends EOF, the proxy delivers what is still in flight towards the other side, then half-closes
 towards it (``write_eof``), like TCP; the connection is closed once both directions are shut, or
@@ -36,6 +38,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
+import socket
 from dataclasses import dataclass, field
 
 from quadcast.protocol.errors import ProtocolError
@@ -53,19 +56,26 @@ DEFAULT_MAX_QUEUE_BYTES = 16 * 1024 * 1024
 
 _READ_CHUNK = 1 << 16
 
+RELIABLE_RCVBUF_BYTES = 4 * 1024
+"""The receive buffer of the proxy's socket to the target when the server -> client direction is reliable: small, so
+that when the model's window holds the stream back the server's own kernel (and a sender watching its unsent
+bytes) feels it, as over a real path, instead of the loopback's megabytes of autotuned buffer taking it all in. The
+socket also takes the path's segment size (the model's ``mss_bytes``): with loopback's 64 kB segments a window this
+small would open only after the persist timer's probes."""
+
 
 def parse_link_args(delay: str | float = 0, jitter: str | float = 0, rate: str | float | None = None,
                     loss: str | float = 0, *, jitter_dist: str = "uniform", reorder: bool = False,
                     seed: int = 0, rate_trace: RateTrace | None = None, reliable: bool = False,
-                    rtt: str | float | None = None) -> LinkModel:
+                    rtt: str | float | None = None, queue_bytes: int | None = None) -> LinkModel:
     """A :class:`LinkModel` from netem/tc-style CLI strings: ``delay="20ms"``, ``jitter="2ms"``,
     ``rate="50mbit"`` (``None`` or ``""`` = unlimited), ``loss="0.5%"``; or a Mahimahi ``rate_trace`` instead of
     the rate (its time 0 is when the proxy starts). ``reliable`` carries a TCP stream (segments lost and sent
-    again, ``rtt`` its round trip: by default twice the delay)."""
+    again, ``rtt`` its round trip: by default twice the delay, ``queue_bytes`` its bottleneck's drop-tail queue)."""
     rate_mbit = None if rate is None or (isinstance(rate, str) and not rate.strip()) else parse_rate_mbit(rate)
     return LinkModel(delay_ms=parse_duration_ms(delay), jitter_ms=parse_duration_ms(jitter), jitter=jitter_dist,
                      rate_mbit=rate_mbit, loss=parse_loss(loss), reorder=reorder, seed=seed, rate_trace=rate_trace,
-                     reliable=reliable, rtt_ms=None if rtt is None else parse_duration_ms(rtt))
+                     reliable=reliable, rtt_ms=None if rtt is None else parse_duration_ms(rtt), queue_bytes=queue_bytes)
 
 
 @dataclass
@@ -133,13 +143,13 @@ class ShapedDirection:
         self._wake.set()
 
     async def wait_for_room(self, conn) -> None:
-        """A reliable link's sender stops while its queue holds ``max_queue_bytes`` or more, as TCP's flow control
-        stops a writer, instead of losing messages: the proxy reads no further and the sending side's socket
-        fills."""
+        """A reliable link's sender stops while a window's worth waits to leave, as a TCP sender's socket buffer
+        (which Linux sizes to about two windows: one in flight, one waiting) stops its writer: the proxy reads no
+        further and the sending side's own socket fills."""
         loop = asyncio.get_running_loop()
         while not conn.closed:
             now = loop.time()
-            if self.queued_bytes(now) + conn.write_buffer_size(self.name) < self.max_queue_bytes:
+            if self.queued_bytes(now) + conn.write_buffer_size(self.name) < self.link.window_bytes:
                 return
             until = self._backlog[0][0] if self._backlog else now + 0.005   # the receiver's buffer drains itself
             await asyncio.sleep(max(until - now, 0.001))
@@ -307,6 +317,31 @@ class ShapedProxy:
         port = self.port if self._server is not None else self.listen_port
         return f"{self.listen_host}:{port}->{self.target_host}:{self.target_port}"
 
+    def _reader_limit(self) -> int:
+        """asyncio's read buffer per stream (it stops reading the socket at twice this): small with a reliable
+        direction, see :data:`RELIABLE_RCVBUF_BYTES`."""
+        return RELIABLE_RCVBUF_BYTES // 2 if self.up.reliable or self.down.reliable else 1 << 16
+
+    async def _open_target(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        """The connection to the target; with a reliable server -> client direction, through a socket with a small
+        receive buffer and the path's segment size (:data:`RELIABLE_RCVBUF_BYTES`)."""
+        if not self.down.reliable:
+            return await asyncio.open_connection(self.target_host, self.target_port, limit=self._reader_limit())
+        loop = asyncio.get_running_loop()
+        family, kind, proto, _, address = (await loop.getaddrinfo(self.target_host, self.target_port,
+                                                                  type=socket.SOCK_STREAM))[0]
+        sock = socket.socket(family, kind, proto)
+        try:
+            sock.setblocking(False)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RELIABLE_RCVBUF_BYTES)
+            if hasattr(socket, "TCP_MAXSEG"):
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, self.down.mss_bytes)
+            await loop.sock_connect(sock, address)
+        except BaseException:
+            sock.close()
+            raise
+        return await asyncio.open_connection(sock=sock, limit=self._reader_limit())
+
     async def start(self) -> None:
         """Start the two directions and listen; returns once the socket is bound."""
         if self._server is not None:
@@ -318,7 +353,8 @@ class ShapedProxy:
                             "down": ShapedDirection("down", self.down, self.max_queue_bytes, self.stats.down)}
         for d in self._directions.values():
             d.task = asyncio.create_task(d.run(), name=f"{self.task_name}-{d.name}")
-        self._server = await asyncio.start_server(self._on_accept, self.listen_host, self.listen_port)
+        self._server = await asyncio.start_server(self._on_accept, self.listen_host, self.listen_port,
+                                                  limit=self._reader_limit())
         log.info("%s %s: listening (up: %r, down: %r)", self.task_name, self.address, self.up, self.down)
 
     async def _on_accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -385,8 +421,7 @@ class LinkProxy(ShapedProxy):
         peer = writer.get_extra_info("peername")
         try:
             try:
-                target = await asyncio.wait_for(asyncio.open_connection(self.target_host, self.target_port),
-                                                self.connect_timeout)
+                target = await asyncio.wait_for(self._open_target(), self.connect_timeout)
             except (OSError, asyncio.TimeoutError) as exc:
                 self.stats.upstream_failures += 1
                 log.warning("proxy %s: cannot reach the target for %s: %s", self.address, peer, exc)

@@ -6,6 +6,7 @@ the figures are those of a slow software-GL machine: the checks are about correc
 """
 from __future__ import annotations
 
+import csv
 import json
 import re
 import socket
@@ -200,6 +201,31 @@ def _lossy_seed(loss: str, down_drop=range(2, 5)) -> int:
         if kept_up and kept_down[0] and kept_down[1] and not all(kept_down[i] for i in down_drop):
             return seed
     raise AssertionError("no seed found")
+
+
+def test_a_slow_tcp_link_makes_the_server_drop_stale_frames_not_queue_them(server, tmp_path):
+    # The server offers several Mbit/s at this size; the link carries 1. Its TCP model stops reading once a window
+    # waits, the server's kernel holds what it could not send, and the server takes its next frame only when that
+    # has gone: it drops the frames that went stale meanwhile, and the shown frames do not fall further and
+    # further behind (with the link taking in everything they would: seconds by the end).
+    link = Child("link", quadcast_argv("link", "--listen", 0, "--to", f"127.0.0.1:{server.port}", "--delay", "10ms",
+                                       "--jitter", "0ms", "--rate", "1mbit", "--queue", "32k"), tmp_path / "link.log")
+    try:
+        link_port = int(link.wait_for(LISTENING, START_TIMEOUT).group(2))
+        out = tmp_path / "slow"
+        client = _client(link_port, out, "--trace", "builtin:walk", "--duration", 8, "--record-every", 6)
+        assert _finish(client) == 0, client.stderr_tail()
+    finally:
+        link.stop()
+    s = _summary(out)
+    _check_sensible(s, out)
+    assert s["mbps"] < 1.2
+    sid = int(next(re.search(r"session (\d+)", line) for line in client.lines if "connected to" in line).group(1))
+    ended = server.wait_for_log(rf"session {sid} ended: .*queue dropped (\d+) stale \+ (\d+) new", 30)
+    assert int(ended.group(1)) + int(ended.group(2)) >= 5, ended.group(0)
+    rows = list(csv.DictReader((out / "frames.csv").open()))
+    late = [float(r["age_ms"]) for r in rows if float(r["t"]) > 5.0 and r["age_ms"]]
+    assert late and np.mean(late) < 2500, late   # (a link that takes in everything: 3,800-5,900 ms)
 
 
 def test_one_percent_loss_makes_the_client_resync(server, tmp_path):

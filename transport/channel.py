@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import fcntl
 import ssl as _ssl
+import struct
+import sys
 
 from quadcast.protocol.frame import FramePayload
 from quadcast.protocol.messages import Frame, Message, MessageDecoder, encode_message
@@ -15,6 +18,9 @@ from quadcast.protocol.messages import Frame, Message, MessageDecoder, encode_me
 __all__ = ["Channel", "TcpChannel", "open_tcp_channel", "ServerBusy"]
 
 _READ_CHUNK = 1 << 16
+
+_SIOCOUTQNSD = 0x894B          # Linux's ioctl for a TCP socket's bytes not yet sent (linux/sockios.h)
+_UNSENT_POLL_S = (0.002, 0.010)   # how often a waiting sender looks again: first, and at most
 
 
 class ServerBusy(ConnectionError):
@@ -47,6 +53,11 @@ class Channel:
 
     async def send_frame(self, payload: FramePayload) -> None:
         await self.send(Frame.from_payload(payload))
+
+    async def wait_sent(self, at_most_bytes: int) -> None:
+        """Wait until at most ``at_most_bytes`` of what was sent still wait on this side to go out (where the
+        transport can tell; otherwise at once). A sender that waits here before it picks its next frame picks
+        the newest one, instead of queueing frames behind a slow link."""
 
     async def close(self) -> None:
         raise NotImplementedError
@@ -87,6 +98,28 @@ class TcpChannel(Channel):
         self.writer.write(data)   # one whole message per write: concurrent senders never interleave
         self.bytes_out += len(data)
         await self.writer.drain()
+
+    def unsent_bytes(self) -> int | None:
+        """Bytes written but not yet on the wire: asyncio's buffer, plus the kernel's send queue not yet sent
+        (Linux); None where the kernel's count cannot be read."""
+        transport = self.writer.transport
+        sock = self.writer.get_extra_info("socket")
+        if transport is None or sock is None or not sys.platform.startswith("linux"):
+            return None
+        try:
+            queued = struct.unpack("i", fcntl.ioctl(sock.fileno(), _SIOCOUTQNSD, b"\0" * 4))[0]
+        except (OSError, ValueError):
+            return None
+        return transport.get_write_buffer_size() + queued
+
+    async def wait_sent(self, at_most_bytes: int) -> None:
+        delay = _UNSENT_POLL_S[0]
+        while not self.closed:
+            unsent = self.unsent_bytes()
+            if unsent is None or unsent <= at_most_bytes:
+                return
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, _UNSENT_POLL_S[1])
 
     async def close(self) -> None:
         if self.closed:

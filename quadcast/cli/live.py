@@ -161,16 +161,17 @@ def cmd_client(args) -> int:
 # -------------------------------------------------------------------------------------------------- link
 
 def link_models(delay: str, jitter: str, rate: str | None, loss: str, seed: int, rate_trace: str | None = None,
-                reliable: bool = False):
+                reliable: bool = False, queue_bytes: int | None = None):
     """The (up, down) :class:`quadcast.sim.link.LinkModel` pair of ``quadcast link``: the same shaping both ways, seeds
     ``seed`` (client -> server) and ``seed + 1`` (server -> client); with ``rate_trace`` (a Mahimahi file or
     builtin:NAME) the server -> client direction follows it instead of ``rate``, from the link's start. ``reliable``
-    models the TCP stream each way (segments lost and sent again) rather than dropping whole messages."""
+    models the TCP stream each way (segments lost and sent again) rather than dropping whole messages, with
+    ``queue_bytes`` its bottleneck's drop-tail queue."""
     from quadcast.sim.proxy import parse_link_args
     from quadcast.sim.ratetrace import resolve_rate_trace
     down = parse_link_args(delay, jitter, None if rate_trace else rate, loss, seed=seed + 1, reliable=reliable,
-                           rate_trace=resolve_rate_trace(rate_trace) if rate_trace else None)
-    return parse_link_args(delay, jitter, rate, loss, seed=seed, reliable=reliable), down
+                           rate_trace=resolve_rate_trace(rate_trace) if rate_trace else None, queue_bytes=queue_bytes)
+    return parse_link_args(delay, jitter, rate, loss, seed=seed, reliable=reliable, queue_bytes=queue_bytes), down
 
 
 def cmd_link(args) -> int:
@@ -184,8 +185,9 @@ def cmd_link(args) -> int:
     if args.webrtc and args.drop_messages:
         raise ValueError("--drop-messages is for the TCP link; with --webrtc every loss is a datagram's")
     tcp = not args.webrtc and not args.drop_messages
-    up, down = link_models(args.delay, args.jitter, args.rate, args.loss, args.seed, args.rate_trace, reliable=tcp)
     queue = parse_bytes(args.queue)
+    up, down = link_models(args.delay, args.jitter, args.rate, args.loss, args.seed, args.rate_trace, reliable=tcp,
+                           queue_bytes=queue if tcp else None)
     if args.webrtc:
         proxy = RtcLinkProxy(args.host, args.listen, to_host, to_port, up=up, down=down, max_queue_bytes=queue)
         units, conns = "datagrams", "signalling requests"
@@ -353,9 +355,9 @@ def add_live_commands(sub) -> None:
                    help="TCP link: drop whole messages (what a TCP connection never does; for trying the client's "
                         "recovery from a lost frame) instead of modelling TCP's retransmissions and window")
     p.add_argument("--queue", default="16m",
-                   help="queue per direction, bytes: what may wait for --rate or TCP's window (and in the receiver's "
-                        "socket buffer). Full, the TCP link stops reading from the sender, as TCP's flow control "
-                        "does; with --webrtc or --drop-messages it drops (drop-tail). E.g. 64k (default 16m)")
+                   help="drop-tail queue per direction, bytes: what may wait for --rate (with --webrtc or "
+                        "--drop-messages, also in the receiver's socket buffer) before a datagram, a message or a "
+                        "TCP segment (sent again, the window halved) is dropped, e.g. 64k (default 16m)")
     p.add_argument("--webrtc", action="store_true",
                    help="for `--transport webrtc`: --to is the server's signalling port; the link answers the "
                         "client's POST /offer, puts its own UDP sockets in both descriptions and shapes every "
