@@ -349,6 +349,7 @@ class LinkModel:
         resend: collections.deque[tuple[float, int]] = collections.deque()   # (when the loss is known, segments)
         x = t
         depart = t
+        on_wire = 0      # segments of this message serialized so far, sent again ones included
         while new or resend:
             if x >= w.round_start + rtt:
                 w.next_round(x)
@@ -374,8 +375,9 @@ class LinkModel:
             if w.used == 0:   # the round's acknowledgements come back a round trip after its first segment left
                 w.round_start = max(w.round_start, sent_at)
             fits = n if self.queue_bytes is None else self._segments_fitting(x, n, seg_bytes)
-            if fits:
-                batch = round(fits * seg_bytes)
+            if fits:   # whole bytes, counted over the message's segments so that its first ones add up to its size
+                batch = round((on_wire + fits) * seg_bytes) - round(on_wire * seg_bytes)
+                on_wire += fits
                 batch_departs = self._serialize(x, batch)
                 depart = max(depart, batch_departs)
                 if self.queue_bytes is not None and batch_departs > x:
