@@ -19,6 +19,7 @@ from quadcast.protocol.rate import Ladder, OperatingPoint, RateConfig
 from quadcast.protocol.session import (ClientSession, EncodeFrame, FrameQueue, RequestReference, ServerSession,
                                        ServerSessionConfig)
 from quadcast.render.gaze import GazeTrace
+from quadcast.transport.channel import Channel
 from stubs import StubClient, StubServer
 
 Q0 = np.array([0.0, 0.0, 0.0, 1.0])
@@ -290,8 +291,9 @@ def _virtual_time(loop: asyncio.AbstractEventLoop) -> None:
     loop._selector.select = virtual_select
 
 
-class _FakeChannel:
-    """A channel fed by the test at exact (virtual) times; what the session sends is kept."""
+class _FakeChannel(Channel):
+    """A channel fed by the test at exact (virtual) times; what the session sends is kept (it sends at once:
+    nothing waits unsent, as :meth:`Channel.wait_sent` says by default)."""
 
     peer = "test"
 
@@ -376,7 +378,7 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
 
     server = types.SimpleNamespace(
         config=types.SimpleNamespace(handshake_timeout=1e9, idle_timeout=1e9, max_sessions=1, methods=("quasar",),
-                                     max_width=64, max_height=64, token="", server_hz=30.0,
+                                     max_width=64, max_height=64, token="", server_hz=30.0, unsent_bytes=0,
                                      session_config=lambda: session_config),
         admission=Admission(), workers=set(), session_ended=lambda c: None)
     events = [e for e in replayed if e[0] in ("pose", "reference", "report")]
