@@ -31,9 +31,9 @@ starts at ``initial_window`` segments, doubles each round trip that used it all 
 a round trip past ``ssthresh`` and halves after a round trip with a loss. A lost segment goes again one round trip
 after it went, so the message (and every later one: in-order delivery) waits for it. With a rate and
 ``queue_bytes``, segments that find the drop-tail queue before the rate full are lost too, so the window stops
-growing where the queue overflows, as Reno's does over a real bottleneck. Queueing in the bottleneck
-does not lengthen the round trip, and the window does not restart after idle (Linux's
-``tcp_slow_start_after_idle=0``).
+growing where the queue overflows, as Reno's does over a real bottleneck. A round's acknowledgements come a round
+trip after its first segment left the queue (so a window sent into a queue is not sent again before the queue has
+carried it), and the window does not restart after idle (Linux's ``tcp_slow_start_after_idle=0``).
 
 Loss and jitter use two independent random streams derived from ``seed``, so
 the set of dropped messages depends only on ``seed`` and ``loss`` (not on the

@@ -17,8 +17,8 @@ buffer; a message that would overflow it is dropped (counted as a loss) -- unles
 message larger than the queue still gets through an idle link.  Without a rate nothing waits to be serialized.  A
 reliable model has its own queue (its ``queue_bytes``: segments that overflow it are lost and sent again), and its
 direction stops reading from the sender while a window's worth waits to leave, as a TCP sender's socket buffer
-would: the sending side's own socket fills (the proxy's receive buffer on it is small, see
-:data:`RELIABLE_RCVBUF_BYTES`), and a sender that watches its unsent bytes sees the link's pace.
+would: the sending side's own socket fills (towards the target, the server, the proxy's receive buffer is small, see
+:data:`RELIABLE_RCVBUF_BYTES`), and a server that watches its unsent bytes sees the link's pace.
 
 When one side sends EOF, the proxy delivers what is still in flight towards the other side, then half-closes
 towards it (``write_eof``), like TCP; the connection is closed once both directions are shut, or
@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import logging
 import socket
 from dataclasses import dataclass, field
@@ -333,9 +334,10 @@ class ShapedProxy:
         sock = socket.socket(family, kind, proto)
         try:
             sock.setblocking(False)
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RELIABLE_RCVBUF_BYTES)
-            if hasattr(socket, "TCP_MAXSEG"):
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, self.down.mss_bytes)
+            for level, option, value in ((socket.SOL_SOCKET, socket.SO_RCVBUF, RELIABLE_RCVBUF_BYTES),
+                                         (socket.IPPROTO_TCP, getattr(socket, "TCP_MAXSEG", None), self.down.mss_bytes)):
+                with contextlib.suppress(OSError, TypeError):   # without them: a looser emulation, not an error
+                    sock.setsockopt(level, option, value)
             await loop.sock_connect(sock, address)
         except BaseException:
             sock.close()

@@ -7,10 +7,14 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import fcntl
 import ssl as _ssl
 import struct
 import sys
+
+try:
+    import fcntl
+except ImportError:    # not on Windows: there TcpChannel.unsent_bytes() is None
+    fcntl = None
 
 from quadcast.protocol.frame import FramePayload
 from quadcast.protocol.messages import Frame, Message, MessageDecoder, encode_message
@@ -104,7 +108,7 @@ class TcpChannel(Channel):
         (Linux); None where the kernel's count cannot be read."""
         transport = self.writer.transport
         sock = self.writer.get_extra_info("socket")
-        if transport is None or sock is None or not sys.platform.startswith("linux"):
+        if transport is None or sock is None or fcntl is None or not sys.platform.startswith("linux"):
             return None
         try:
             queued = struct.unpack("i", fcntl.ioctl(sock.fileno(), _SIOCOUTQNSD, b"\0" * 4))[0]
