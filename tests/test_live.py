@@ -492,6 +492,15 @@ def test_pace_is_checked_and_only_for_webrtc():
         LiveServer(ServerConfig(pace_mbit=10.0), make_server, transport="tcp")
 
 
+def test_unsent_is_checked(capsys):
+    from quadcast.cli import main
+    from quadcast.server.app import ServerConfig
+    with pytest.raises(ValueError, match="unsent_bytes: expected >= 0"):
+        ServerConfig(unsent_bytes=-1)
+    assert main(["server", "--port", "0", "--unsent", "lots"]) == 2
+    assert "cannot parse size 'lots'" in capsys.readouterr().err
+
+
 def test_bind_and_address_checks():
     check_bind("127.0.0.1", "")
     check_bind("::1", "")

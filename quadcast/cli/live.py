@@ -63,7 +63,7 @@ def cmd_server(args) -> int:
     from quadcast.methods import make_server
     from quadcast.render.camera import parse_size
     from quadcast.server.app import LiveServer, ServerConfig, server_summary_line
-    from quadcast.sim.link import parse_rate_mbit
+    from quadcast.sim.link import parse_bytes, parse_rate_mbit
     _setup_logging(args.verbose)
     max_w, max_h = parse_size(args.max_size)
     cfg = ServerConfig(scene=args.scene, methods=tuple(m.strip() for m in args.method.split(",") if m.strip()),
@@ -79,7 +79,8 @@ def cmd_server(args) -> int:
                        allow_plaintext_token=args.allow_plaintext_token,
                        max_peer_connections=args.max_peer_connections, stun=args.stun,
                        pace_mbit=parse_rate_mbit(args.pace) if args.pace else None, adapt=args.adapt,
-                       target_mbps=args.target_mbps, ladder=args.ladder, point=args.point)
+                       target_mbps=args.target_mbps, ladder=args.ladder, point=args.point,
+                       unsent_bytes=0 if args.unsent.strip() == "0" else parse_bytes(args.unsent))
 
     async def main() -> None:
         server = LiveServer(cfg, make_server, transport=args.transport)
@@ -284,6 +285,10 @@ def add_live_commands(sub) -> None:
     p.add_argument("--pace", metavar="RATE",
                    help="WebRTC: send each session's RTP packets no faster than this, e.g. 40mbit (default: each "
                         "frame's packets at once, as aiortc does; a link with a shallow queue drops the burst)")
+    p.add_argument("--unsent", metavar="SIZE", default="16k",
+                   help="TCP: take each session's next frame once at most SIZE bytes of the last ones wait unsent in "
+                        "the kernel (Linux), so frames wait in the session's queue, where stale ones are dropped, "
+                        "not behind a slow link; 0 waits for all (default %(default)s)")
     p.add_argument("--worker", default="process", choices=["process", "thread"],
                    help="where each session renders and encodes: its own process (default), or a thread of the "
                         "server's process (stalls the event loop while it renders)")
