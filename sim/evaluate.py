@@ -60,6 +60,7 @@ class EvalSpec:
     rate_mbit: float | None = None
     loss: float = 0.0
     tcp: bool = False              # the downlink is one TCP stream: loss is of its segments, which are sent again
+    queue_bytes: int | None = None  # with tcp: the drop-tail queue before the rate (None: it takes everything)
     viewcell_m: float = 0.5
     width: int = 960
     height: int = 540
@@ -187,7 +188,7 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     client = make_client(spec.method, cfg, renderer.ctx)
     predictor = spec.predictor or DEFAULT_PREDICTOR
     rc = ReplayConfig(latency_ms=spec.latency_ms, jitter_ms=spec.jitter_ms, rate_mbit=spec.rate_mbit,
-                      loss=spec.loss, tcp=spec.tcp, predict=spec.predict, predictor=predictor, seed=spec.seed,
+                      loss=spec.loss, tcp=spec.tcp, queue_bytes=spec.queue_bytes, predict=spec.predict, predictor=predictor, seed=spec.seed,
                       rate_trace=rate_trace,
                       rate=session_rate(ladder, spec.target_mbps, spec.crf, spec.viewcell_m, spec.reference_every)
                       if adapt else None, point=point, gaze=gaze,
@@ -219,7 +220,7 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     rate = lambda b: b * 8 / totals.duration_s / 1e6  # noqa: E731
     c = totals.client
     run = {"latency_ms": spec.latency_ms, "jitter_ms": spec.jitter_ms, "rate_mbit": spec.rate_mbit,
-           "loss": spec.loss, "tcp": spec.tcp, "viewcell_m": spec.viewcell_m, "display_frames": spec.frames,
+           "loss": spec.loss, "tcp": spec.tcp, "queue_bytes": spec.queue_bytes, "viewcell_m": spec.viewcell_m, "display_frames": spec.frames,
            "every": spec.every,
            "seed": spec.seed, "predict": spec.predict, "server_frame_ms": spec.server_frame_ms,
            "predictor": str(predictor) if spec.predict else None, "mbps": rate(totals.bytes_total),

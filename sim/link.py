@@ -253,6 +253,8 @@ class LinkModel:
         self.queue_bytes = None if queue_bytes is None else int(queue_bytes)
         self._bottleneck: collections.deque[tuple[float, int]] = collections.deque()   # (departs, bytes) queued
         self._bottleneck_bytes = 0
+        self._unsent: collections.deque[tuple[float, int]] = collections.deque()   # (departs, bytes), in order
+        self._unsent_bytes = 0
 
         loss_seq, jitter_seq = np.random.SeedSequence(self.seed).spawn(2)
         self._loss_rng = np.random.default_rng(loss_seq)
@@ -380,6 +382,9 @@ class LinkModel:
                 on_wire += fits
                 batch_departs = self._serialize(x, batch)
                 depart = max(depart, batch_departs)
+                self._unsent.append((max(batch_departs, self._unsent[-1][0] if self._unsent else batch_departs),
+                                     batch))
+                self._unsent_bytes += batch
                 if self.queue_bytes is not None and batch_departs > x:
                     self._bottleneck.append((batch_departs, batch))
                     self._bottleneck_bytes += batch
@@ -405,6 +410,25 @@ class LinkModel:
                 return n
             per_segment *= excess
         return min(n, int(room / per_segment))
+
+    def unsent_bytes(self, t: float) -> int:
+        """A reliable link's bytes accepted by :meth:`send` that have not left by ``t``: waiting for the window or
+        in the queue before the rate (what a TCP sender's kernel holds unsent)."""
+        while self._unsent and self._unsent[0][0] <= t:
+            self._unsent_bytes -= self._unsent.popleft()[1]
+        return self._unsent_bytes
+
+    def unsent_at_most(self, limit: int) -> float:
+        """When a reliable link's unsent bytes are down to ``limit`` or fewer, if nothing more is sent
+        (``-inf``: they are already)."""
+        left = self._unsent_bytes
+        if left <= limit:
+            return -math.inf
+        for departs, size in self._unsent:
+            left -= size
+            if left <= limit:
+                return departs
+        return self._unsent[-1][0]
 
     def _queue_room(self, t: float) -> int:
         """Bytes the bottleneck's drop-tail queue still takes at ``t`` (a reliable link with ``queue_bytes``)."""

@@ -49,6 +49,10 @@ class ReplayConfig:
     rate_mbit: float | None = None
     loss: float = 0.0
     tcp: bool = False    # the downlink is one TCP stream: loss is of its segments, sent again (a reliable LinkModel)
+    # with tcp: the server takes its next frame once the link holds at most a window and this many bytes unsent, as
+    # the live server waits for its kernel's unsent bytes (quadcast server --unsent) behind the TCP link's model
+    unsent_bytes: int = 16 * 1024
+    queue_bytes: int | None = None   # with tcp: the drop-tail queue before the rate (None: it takes everything)
     client_hz: float = 60.0
     server_hz: float = 30.0
     predict: bool = True
@@ -122,7 +126,8 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
     the state is updated on every frame regardless. `on_display` receives each shown frame."""
     up = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=None, loss=0.0, seed=config.seed)
     down = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=config.rate_mbit, loss=config.loss,
-                     seed=config.seed + 1, rate_trace=config.rate_trace, reliable=config.tcp)
+                     seed=config.seed + 1, rate_trace=config.rate_trace, reliable=config.tcp,
+                     queue_bytes=config.queue_bytes if config.tcp else None)
     back = LinkModel(config.latency_ms, config.jitter_ms, rate_mbit=None, loss=0.0, seed=config.seed + 2)  # reports
     server_session = ServerSession(config.server_session())
     client_session = ClientSession(config.reference_timeout_s)
@@ -137,6 +142,7 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
     server_delay = config.server_delay_ms / 1e3
     in_flight: tuple[float, EncodeFrame] | None = None      # (ready at, decision) of the frame being encoded
     next_send = 0.0
+    checked = 0.0       # the server's queue was last looked at then
     newest: FramePayload | None = None
 
     def encode(decision: EncodeFrame | None) -> None:
@@ -144,33 +150,53 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
         if decision is not None:
             in_flight = (decision.started + server_delay, decision)
 
+    def send_queued(until: float) -> None:
+        """Send what the server's queue holds, each frame when the link takes it, up to `until`: at once, or over
+        TCP once the link holds at most a window and `unsent_bytes` unsent (the live server's wait, ``quadcast
+        server --unsent``). A frame queued since the last call (at `checked`) goes no earlier than that."""
+        nonlocal checked
+        while server_session.queue:
+            ready = checked
+            if config.tcp:
+                ready = max(ready, down.unsent_at_most(down.window_bytes + config.unsent_bytes))
+            if ready > until:
+                break
+            send(ready, server_session.next_to_send())
+            checked = ready
+        checked = max(checked, until)
+
     def finish_encode(until: float) -> None:
-        """The frame in flight is done if it is ready by `until`: send it, start the next one."""
+        """The frame in flight is done if it is ready by `until`: queue it (and send what the link takes), start
+        the next one."""
         nonlocal in_flight
         while in_flight is not None and in_flight[0] <= until:
             ready, decision = in_flight
+            send_queued(ready)
             in_flight = None
             payload = server.encode_decision(decision)
             points[payload.frame_id] = decision.point_index
             encode(server_session.frame_encoded(ready, payload, payload.self_contained, ready - decision.started))
-            while (p := server_session.next_to_send()) is not None:
-                size = p.size_bytes
-                totals.frames_sent += 1
-                totals.bytes_video += len(p.video)
-                totals.bytes_geometry += len(p.geometry)
-                totals.bytes_total += size
-                totals.payloads.append((p.frame_type, len(p.video) + len(p.geometry), p.stats))
-                server_session.frame_sent(ready, p.frame_id, size)
-                d = down.send(ready, p, size)
-                if d is None:
-                    totals.frames_lost += 1
-                index = points.pop(p.frame_id, None)
-                st = rate.state if rate is not None else None
-                totals.sent.append(SentFrame(
-                    p.frame_id, ready, d.t_arrive if d is not None else float("nan"), size, index,
-                    rate.points[index].name if index is not None else None,
-                    st.capacity_mbps if st is not None else None,
-                    st.queue_delay_s * 1e3 if st is not None and st.queue_delay_s is not None else None))
+            send_queued(ready)
+
+    def send(ready: float, p: FramePayload) -> None:
+        """One frame onto the downlink at `ready`."""
+        size = p.size_bytes
+        totals.frames_sent += 1
+        totals.bytes_video += len(p.video)
+        totals.bytes_geometry += len(p.geometry)
+        totals.bytes_total += size
+        totals.payloads.append((p.frame_type, len(p.video) + len(p.geometry), p.stats))
+        server_session.frame_sent(ready, p.frame_id, size)
+        d = down.send(ready, p, size)
+        if d is None:
+            totals.frames_lost += 1
+        index = points.pop(p.frame_id, None)
+        st = rate.state if rate is not None else None
+        totals.sent.append(SentFrame(
+            p.frame_id, ready, d.t_arrive if d is not None else float("nan"), size, index,
+            rate.points[index].name if index is not None else None,
+            st.capacity_mbps if st is not None else None,
+            st.queue_delay_s * 1e3 if st is not None and st.queue_delay_s is not None else None))
 
     def timers(until: float) -> None:
         """Run the server session's timer (a frame waiting for the flood guard or its point's frame rate) up to
@@ -204,6 +230,7 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
                                                                                               ReceiveReport))):
             finish_encode(d.t_arrive)
             timers(d.t_arrive)
+            send_queued(d.t_arrive)
             m = d.message
             if isinstance(m, ReferenceRequest):
                 server_session.reference_requested(d.t_arrive)
@@ -215,6 +242,7 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
             finish_encode(d.t_arrive)
         finish_encode(now)
         timers(now)
+        send_queued(now)
         # Server -> client: apply what arrived (and report its arrival).
         for d in down.poll(now):
             payload: FramePayload = d.message

@@ -197,3 +197,10 @@ def test_eval_start_fastest_picks_the_traces_fastest_motion_over_the_replay(tmp_
     with pytest.raises(SystemExit):
         parser.parse_args(["eval", "--start", "soon", "--out", "x"])
     assert "not seconds or 'fastest': 'soon'" in capsys.readouterr().err
+
+
+def test_eval_queue_needs_tcp(tmp_path, capsys):
+    from quadcast.cli import main
+    assert main(["eval", "--scene", "builtin:courtyard", "--trace", "builtin:walk", "--method", "atw", "--queue", "64k",
+                 "--out", str(tmp_path)]) == 2
+    assert "--queue is the TCP downlink's queue" in capsys.readouterr().err

@@ -422,3 +422,25 @@ def test_replay_and_live_server_make_the_same_decisions(monkeypatch, server_dela
     # ... and the gaze its newest pose carried: the replayed client sends its gaze trace with its poses
     gazes = replay_server.gazes
     assert len(set(gazes)) > 10 and workers[0].stub.gazes[:len(gazes)] == gazes
+
+
+def test_replay_over_a_slow_tcp_link_holds_frames_back_as_the_live_server_does():
+    # 20 kB frames at the pose rate (about 4.8 Mbit/s) into a 1 Mbit/s TCP downlink with a 32 kB queue, as
+    # tests/test_live.py's slow link. The server takes its next frame
+    # only once the link holds at most a window and `unsent_bytes` unsent, as the live server waits for its kernel's
+    # unsent bytes: the frames wait in its queue, stale ones are dropped there, and the shown frames' age stays
+    # bounded. Taking every frame at once (no wait), they fall further and further behind.
+    import quadcast.sim.replay as replay_mod
+    from quadcast.render.traces import resolve_trace
+
+    def run(unsent_bytes):
+        cfg = replay_mod.ReplayConfig(latency_ms=10, jitter_ms=0, rate_mbit=1.0, tcp=True, unsent_bytes=unsent_bytes,
+                                      queue_bytes=32 * 1024, seed=1)
+        totals = replay_mod.replay(resolve_trace("builtin:walk"), StubServer(size=20_000), StubClient(), cfg, 600)
+        late = [age for t, age, _ in totals.ages if t > 7.0]
+        return totals, float(np.mean(late))
+
+    (held, held_age), (flooded, flooded_age) = run(16 * 1024), run(1 << 40)
+    assert held.frames_sent < held.server.frames_encoded and flooded.frames_sent == flooded.server.frames_encoded
+    assert all(b.t_sent >= a.t_sent for a, b in zip(held.sent, held.sent[1:]))
+    assert held_age < 1000 < 3000 < flooded_age, (held_age, flooded_age)

@@ -207,8 +207,10 @@ def _client_cores(text: str) -> int:
 def _eval_spec(args):
     from quadcast.render.camera import parse_size
     from quadcast.sim.evaluate import EvalSpec
-    from quadcast.sim.link import parse_loss, parse_rate_mbit
+    from quadcast.sim.link import parse_bytes, parse_loss, parse_rate_mbit
     w, h = parse_size(args.size)
+    if args.queue and not args.tcp:
+        raise ValueError("--queue is the TCP downlink's queue: give --tcp too")
     start = args.start
     if start == "fastest":
         from quadcast.render.traces import resolve_trace
@@ -219,7 +221,8 @@ def _eval_spec(args):
     return EvalSpec(scene=args.scene, trace=args.trace, anchor=args.anchor, start=start, method=args.method,
                     latency_ms=args.latency,
                     jitter_ms=args.jitter, rate_mbit=parse_rate_mbit(args.rate) if args.rate else None,
-                    loss=parse_loss(args.loss) if args.loss else 0.0, tcp=args.tcp, viewcell_m=args.viewcell,
+                    loss=parse_loss(args.loss) if args.loss else 0.0, tcp=args.tcp,
+                    queue_bytes=parse_bytes(args.queue) if args.queue else None, viewcell_m=args.viewcell,
                     width=w, height=h,
                     frames=args.frames, every=args.every, stereo=args.stereo, seed=args.seed,
                     predict=not args.no_predict, crf=args.crf, rate_trace=args.rate_trace, adapt=args.adapt,
@@ -409,6 +412,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tcp", action="store_true",
                    help="the downlink is one TCP stream, as `quadcast link` models it: --loss is of its segments, "
                         "which are sent again a round trip later, and a Reno window paces it")
+    p.add_argument("--queue", help="with --tcp: the drop-tail queue before --rate, e.g. 64k (default: it takes "
+                                   "everything); a segment that overflows it is lost and sent again")
     p.add_argument("--server-frame-ms", type=float, default=0.0,
                    help="virtual time the server takes per frame (e.g. a live server's measured frame time, to "
                         "replay the frame rate it kept; default 0: it keeps the 30 Hz pose rate)")
