@@ -346,6 +346,7 @@ class LinkModel:
         """A reliable link's message: its segments leave as the window allows, lost ones again a round trip later.
         Returns when its last segment left."""
         rtt, w, mss = self.rtt_ms * 1e-3, self.window, self.mss_bytes
+        self.unsent_bytes(t)   # forget what has left
         new = max(1, -(-size_bytes // mss))
         seg_bytes = size_bytes / new
         resend: collections.deque[tuple[float, int]] = collections.deque()   # (when the loss is known, segments)
@@ -418,12 +419,12 @@ class LinkModel:
             self._unsent_bytes -= self._unsent.popleft()[1]
         return self._unsent_bytes
 
-    def unsent_at_most(self, limit: int) -> float:
-        """When a reliable link's unsent bytes are down to ``limit`` or fewer, if nothing more is sent
-        (``-inf``: they are already)."""
-        left = self._unsent_bytes
+    def unsent_at_most(self, limit: int, t: float) -> float:
+        """When, from ``t`` on, a reliable link's unsent bytes are down to ``limit`` or fewer if nothing more is
+        sent (``t``: they are already)."""
+        left = self.unsent_bytes(t)
         if left <= limit:
-            return -math.inf
+            return t
         for departs, size in self._unsent:
             left -= size
             if left <= limit:

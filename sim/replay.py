@@ -158,7 +158,7 @@ def replay(trace: Trace, server: MethodServer, client: MethodClient, config: Rep
         while server_session.queue:
             ready = checked
             if config.tcp:
-                ready = max(ready, down.unsent_at_most(down.window_bytes + config.unsent_bytes))
+                ready = down.unsent_at_most(down.window_bytes + config.unsent_bytes, checked)
             if ready > until:
                 break
             send(ready, server_session.next_to_send())

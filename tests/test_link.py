@@ -354,3 +354,15 @@ def test_tcp_link_delivers_every_message_once_in_order_no_sooner_than_the_wire_a
     segments = sum(max(1, -(-size // link.mss_bytes)) for _, size in sends)
     assert link.stats.segments_sent == segments + link.stats.segments_lost
     assert link.stats.dropped == 0 and link.window.cwnd >= 2.0
+
+
+def test_tcp_link_counts_its_unsent_bytes_and_forgets_what_left():
+    link = LinkModel(delay_ms=10, rate_mbit=8, reliable=True, initial_window=1000)   # 1 MB/s
+    for i in range(10):
+        link.send(0.0, i, 10_000)                 # each leaves 10 ms after the one before
+    assert link.unsent_bytes(0.0) == 100_000 and link.unsent_bytes(0.05) == 50_000
+    assert link.unsent_at_most(20_000, 0.05) == pytest.approx(0.08)
+    assert link.unsent_at_most(20_000, 0.2) == 0.2 and link.unsent_bytes(0.2) == 0
+    for i in range(1, 2_000):                     # a long run keeps only what has not left
+        link.send(0.2 + i * 0.01, i, 1_000)
+    assert len(link._unsent) <= 2
