@@ -9,16 +9,26 @@ pushed back onto what lies behind them), with 16 depth offsets per quad so that 
 corners: no cracks, whatever the eye's pose. The client keeps the far field with its reference frame and draws it
 behind the quad mesh, so any head rotation shows content -- the sky, or geometry no layer caught -- and geometry
 beyond the split distance (`QuadParams.max_depth`) needs no quads at all.
+
+A face's blocks are wide (about 18 degrees at 16 pixels), so where a near object stands before something far, the
+surface lies at the far depth and the object's colour is drawn there: seen from beside the cube map's centre it
+appears beside the object itself, a ghost of it in the sky or on the wall behind, wherever a gap in the quad mesh
+or a head turn shows the far field (a lone object a few metres away shows its ghost beside every silhouette the
+head moves past). So the pixels that would move too far against their surface (`near_occluders`: seen from a
+given offset, by more than a given angle) take the colour of the nearest pixel on the surface (`fill_from_nearest`)
+before the faces go into the atlas.
 """
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from quadcast.protocol.quads import LayerKind, QuadLayer, QuadSet, pack_normals, unpack_normals
 from quadcast.render.camera import Camera, Frustum, Pose
-from quadcast.render.renderer import DeferredRenderer, GBuffer
+from quadcast.render.renderer import DeferredRenderer, GBuffer, read_texture
 
-__all__ = ["FACE_DIRECTIONS", "FarField", "face_cameras", "range_grid_faces", "range_grid_quads"]
+__all__ = ["FACE_DIRECTIONS", "FarField", "face_cameras", "fill_from_nearest", "near_occluders", "range_grid_faces",
+           "range_grid_quads"]
 
 # Each face: (the direction it looks at, its up vector), world space (+Y up).
 FACE_DIRECTIONS = (((1, 0, 0), (0, 1, 0)), ((-1, 0, 0), (0, 1, 0)), ((0, 1, 0), (0, 0, 1)),
@@ -48,9 +58,9 @@ def range_grid_quads(camera: Camera, depth: np.ndarray, block: int, max_depth: f
     return range_grid_faces(camera, np.asarray(depth)[None], block, max_depth)[0]
 
 
-def range_grid_faces(camera: Camera, depths: np.ndarray, block: int, max_depth: float) -> list[QuadSet]:
-    """`range_grid_quads` of several faces at once: `depths` (faces, h, w), each seen by a camera with `camera`'s
-    frustum and size (a cube map's faces), whose view-space rays are the same: they are worked out once."""
+def _farthest_corners(depths: np.ndarray, block: int, max_depth: float) -> tuple[np.ndarray, np.ndarray]:
+    """The faces' depths (faces, h, w) with sky and what lies beyond at `max_depth`, and the depth at every block
+    corner (faces, h / block + 1, w / block + 1): the farthest of the blocks around it."""
     f, h, w = depths.shape
     if w % block or h % block or block & (block - 1):
         raise ValueError(f"far field: a {w}x{h} face is not a whole number of {block}-pixel blocks (a power of 2)")
@@ -58,8 +68,49 @@ def range_grid_faces(camera: Camera, depths: np.ndarray, block: int, max_depth: 
     z = np.where(np.isfinite(depths), np.minimum(depths, max_depth), max_depth)
     blocks = z.reshape(f, gy, block, gx, block).max(axis=(2, 4))
     padded = np.pad(blocks, ((0, 0), (1, 1), (1, 1)), mode="edge")
-    corners = np.maximum.reduce([padded[:, :-1, :-1], padded[:, :-1, 1:], padded[:, 1:, :-1],
-                                 padded[:, 1:, 1:]])                                          # (f, gy+1, gx+1)
+    return z, np.maximum.reduce([padded[:, :-1, :-1], padded[:, :-1, 1:], padded[:, 1:, :-1], padded[:, 1:, 1:]])
+
+
+def near_occluders(depths: np.ndarray, block: int, max_depth: float, offset: float, angle_deg: float) -> np.ndarray:
+    """Where the far field's faces (view depths (faces, h, w), as `range_grid_faces` takes them) show something
+    far nearer than the surface it is drawn on: (faces, h, w) bool, true where an eye `offset` metres from the cube
+    map's centre would see the pixel's colour more than `angle_deg` away from where the pixel's own point lies
+    (offset * (1/depth - 1/surface depth) radians; the surface between a block's corners taken bilinear in depth).
+    A near object before a far background is drawn at the background's depth: these pixels are its ghost."""
+    if not (offset > 0 and angle_deg > 0):
+        return np.zeros(np.shape(depths), bool)
+    z, corners = _farthest_corners(np.asarray(depths), block, max_depth)
+    f, h, w = z.shape
+
+    def lerp(n):     # each pixel centre's corner to the left of / above it, and the weight of the next one
+        u = (np.arange(n) + 0.5) / block
+        i = np.minimum(u.astype(int), n // block - 1)
+        return i, u - i
+    ix, fx = lerp(w)
+    iy, fy = lerp(h)
+    rows = corners[:, :, ix] * (1 - fx) + corners[:, :, ix + 1] * fx                       # (f, gy+1, w)
+    surface = rows[:, iy] * (1 - fy)[:, None] + rows[:, iy + 1] * fy[:, None]              # (f, h, w)
+    return offset * (1.0 / z - 1.0 / surface) > np.radians(angle_deg)
+
+
+def fill_from_nearest(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """`image` (h, w, ...) with every pixel where `mask` (h, w) is true taken from the nearest one where it is not
+    (unchanged where the mask holds everywhere or nowhere)."""
+    image, mask = np.asarray(image), np.asarray(mask, bool)
+    if mask.shape != image.shape[:2]:
+        raise ValueError(f"fill_from_nearest: a {mask.shape} mask for a {image.shape[:2]} image")
+    if not mask.any() or mask.all():
+        return image.copy()
+    _, (iy, ix) = ndimage.distance_transform_edt(mask, return_indices=True)
+    return image[iy, ix]
+
+
+def range_grid_faces(camera: Camera, depths: np.ndarray, block: int, max_depth: float) -> list[QuadSet]:
+    """`range_grid_quads` of several faces at once: `depths` (faces, h, w), each seen by a camera with `camera`'s
+    frustum and size (a cube map's faces), whose view-space rays are the same: they are worked out once."""
+    f, h, w = depths.shape
+    gx, gy = w // block, h // block
+    corners = _farthest_corners(depths, block, max_depth)[1]                                  # (f, gy+1, gx+1)
     # Depth at the 3x3 lattice of every quad (half-block steps): bilinear between its corners.
     fine = np.empty((f, 2 * gy + 1, 2 * gx + 1))
     fine[:, ::2, ::2] = corners
@@ -101,6 +152,8 @@ class FarField:
         renderer.coarse_meshes(self.detail)      # made now, not in the first reference frame
         self.gbuffers = [GBuffer(renderer.ctx, size, size) for _ in FACE_DIRECTIONS]
         self.cameras: list[Camera] = []
+        self._depths: np.ndarray | None = None     # the faces' view depths, read by `light` for `layers`
+        self.occluded = 0.0                         # the share of the faces' pixels `light` recoloured
 
     def draw_geometry(self, position, t: float, near: float, far: float) -> None:
         """The six faces' geometry passes at `position`, time `t` (kept on the GPU until the next call); `light`
@@ -110,14 +163,24 @@ class FarField:
         for camera, gb in zip(self.cameras, self.gbuffers):
             self.renderer.geometry_pass(camera, t, target=gb, detail=self.detail)
 
-    def light(self, t: float) -> None:
-        """The six faces' lighting passes, after `draw_geometry`."""
+    def light(self, t: float, occluder_offset: float = 0.0, occluder_deg: float = 0.0) -> None:
+        """The six faces' lighting passes, after `draw_geometry`; then the pixels that, seen from
+        `occluder_offset` metres beside the centre, would lie more than `occluder_deg` from their own point
+        (`near_occluders`; 0: none) take the colour of the nearest pixel that would not (`fill_from_nearest`)."""
         for gb in self.gbuffers:
             self.renderer.lighting_pass(gb, t)
+        self._depths = np.stack([gb.read_depth() for gb in self.gbuffers])
+        mask = near_occluders(self._depths, self.block, self.max_depth, occluder_offset, occluder_deg)
+        self.occluded = float(mask.mean())
+        for gb, face in zip(self.gbuffers, mask):
+            if face.any() and not face.all():
+                colour = fill_from_nearest(read_texture(gb.color, 4, "u1"), face)
+                gb.color.write(np.ascontiguousarray(colour[::-1]))      # GL rows: bottom first
 
     def layers(self, rects) -> list[QuadLayer]:
         """The faces' quad layers, their colour at `rects` in the atlas."""
-        depths = np.stack([gb.read_depth() for gb in self.gbuffers])
+        depths = self._depths if self._depths is not None else np.stack([gb.read_depth() for gb in self.gbuffers])
+        self._depths = None
         faces = range_grid_faces(self.cameras[0], depths, self.block, self.max_depth)   # one frustum and size
         return [QuadLayer(LayerKind.FAR, self.size, self.size, camera.to_array(), rect, quads)
                 for camera, rect, quads in zip(self.cameras, rects, faces)]

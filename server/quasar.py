@@ -68,6 +68,12 @@ class QuasarSettings:
     # -> 23 ms; FLIP within 0.0001 of every triangle's, or better, on five of six evals, +0.0006 on the sixth
     # (docs/speed.md, stop 51).
     far_detail: float = 0.1
+    # Far-field pixels that, seen from the view cell's edge (viewcell_radius from the cube map's centre), would lie
+    # more than this from their own point -- a near object drawn on the far surface behind it -- take the colour of
+    # the nearest pixel that would not (server/farfield.py, near_occluders; 0 keeps every colour). A lone object
+    # a few metres away otherwise shows a ghost of itself beside its silhouettes. 10 deg: FLIP 0.0393 -> 0.0365 on
+    # a lone glTF object, no row of the real-trace benchmark worse (README, "Ghosts in the far field").
+    far_occluder_deg: float = 10.0
     connectivity: float = 0.001          # EDP: relative depth gap that is still the same surface
     change_threshold: float = 0.01       # relative depth change that makes a reference pixel "updated"
     # QUASAR's boundary expansion (§3.5.1) of the revealed region, in pixels. Off by default: on the real-trace
@@ -107,6 +113,8 @@ class QuasarSettings:
             raise ValueError(f"far_block must be a power of 2 >= 2, got {self.far_block}")
         if not 0 < self.far_detail <= 1:
             raise ValueError(f"far_detail must be in (0, 1], got {self.far_detail}")
+        if not self.far_occluder_deg >= 0:
+            raise ValueError(f"far_occluder_deg must be >= 0, got {self.far_occluder_deg}")
 
     @property
     def far_size(self) -> int:
@@ -383,7 +391,7 @@ class QuasarServer(MethodServer):
         if ref_gb is not None:
             self.renderer.lighting_pass(ref_gb, t, region)
         if fresh_far is not None:
-            fresh_far.light(t)
+            fresh_far.light(t, s.viewcell_radius, s.far_occluder_deg)
         self.ctx.finish()
         return _FrameViews(camera, t, is_reference, gbs, wide_gb, wide_cam, ref_gb, region, fresh_far)
 

@@ -179,3 +179,62 @@ def test_a_far_field_of_coarse_meshes_draws_fewer_triangles_and_sees_the_same_su
     assert (np.isfinite(z_full) == np.isfinite(z_coarse)).mean() > 0.99
     assert np.median(np.abs(z_coarse[hit] - z_full[hit]) / z_full[hit]) < 0.01
     assert np.abs(c_coarse - c_full).mean() < 3.0 and not np.array_equal(c_coarse, c_full)
+
+
+def test_near_occluders_are_near_objects_drawn_on_a_far_surface():
+    """A near object before the sky lies on the sky's surface (every block around it reaches the sky): seen from
+    half a metre beside the centre its pixels would move 14 degrees against it. Sky, a wall, and an object just
+    before a wall are not flagged; no offset or no angle flags nothing."""
+    from quadcast.server.farfield import near_occluders
+    depth = np.full((1, 64, 64), np.inf, np.float32)
+    depth[0, 20:40, 20:44] = 2.0                                            # an object 2 m away, then sky
+    flagged = near_occluders(depth, 16, 90.0, 0.5, 10.0)[0]
+    assert flagged.shape == (64, 64)
+    assert flagged[20:40, 20:44].all() and not flagged[np.isinf(depth[0])].any()
+    wall = np.full((1, 64, 64), 7.0, np.float32)
+    assert not near_occluders(wall, 16, 90.0, 0.5, 10.0).any()
+    before_wall = wall.copy()
+    before_wall[0, 20:40, 20:44] = 6.0                                       # 0.6 degrees against the wall
+    assert not near_occluders(before_wall, 16, 90.0, 0.5, 10.0).any()
+    assert not near_occluders(depth, 16, 90.0, 0.0, 10.0).any()
+    assert not near_occluders(depth, 16, 90.0, 0.5, 0.0).any()
+    assert not near_occluders(depth, 16, 90.0, 0.5, 30.0).any()             # 14 degrees is within 30
+    assert near_occluders(depth, 16, 90.0, 1.5, 30.0)[0, 20:40, 20:44].all()   # 43 degrees from 1.5 m
+
+
+def test_fill_from_nearest_takes_each_masked_pixel_from_the_nearest_other():
+    from quadcast.server.farfield import fill_from_nearest
+    image = np.zeros((4, 6, 3), np.uint8)
+    image[:, :3] = (0, 0, 255)
+    image[:, 3:] = (255, 0, 0)
+    mask = np.zeros((4, 6), bool)
+    mask[1:3, 2:4] = True                     # two columns: the left one nearest blue, the right one nearest red
+    out = fill_from_nearest(image, mask)
+    assert (out[1:3, 2] == (0, 0, 255)).all() and (out[1:3, 3] == (255, 0, 0)).all()
+    assert np.array_equal(out[~mask], image[~mask])
+    assert np.array_equal(fill_from_nearest(image, np.ones((4, 6), bool)), image)   # nothing to take from
+    with pytest.raises(ValueError, match="mask"):
+        fill_from_nearest(image, mask[:, :5])
+
+
+def test_the_far_field_shows_no_ghost_of_a_near_object(ctx):
+    """A red box 2 m before the server's eye, with sky behind it: its colour is in the far field's faces only
+    without the occluder fill (`QuasarSettings.far_occluder_deg` 0), where an eye beside the centre would see it
+    beside the box itself."""
+    from quadcast.render.renderer import DeferredRenderer, read_texture
+    from quadcast.render.scene import scene_from_dict
+    from quadcast.server.quasar import QuasarServer, QuasarSettings
+    scene = scene_from_dict({"models": [{"primitive": "box", "extents": [1, 1, 1], "position": [0, 1.6, -2.0],
+                                         "color": [0.9, 0.05, 0.05]}], "sun": {"direction": [-0.3, -1, -0.2]}})
+    renderer = DeferredRenderer(scene, ctx)
+    red = {}
+    for deg in (0.0, 10.0):
+        server = QuasarServer(renderer, QuasarSettings(width=160, height=90, far_occluder_deg=deg))
+        server.encode(Pose([0.0, 1.6, 0.0]), 0.0)
+        faces = np.stack([read_texture(c, 4, "u1")[..., :3].astype(int) for c in server.far_field.colors])
+        red[deg] = int(((faces[..., 0] - faces[..., 1] > 40) & (faces[..., 0] - faces[..., 2] > 40)).sum())
+        assert server.far_field.occluded > 0 if deg else server.far_field.occluded == 0
+        server.close()
+    assert red[0.0] > 20 and red[10.0] == 0, red
+    with pytest.raises(ValueError, match="far_occluder_deg"):
+        QuasarSettings(far_occluder_deg=-1.0)
