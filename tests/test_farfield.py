@@ -194,12 +194,12 @@ def test_near_occluders_are_near_objects_drawn_on_a_far_surface():
     wall = np.full((1, 64, 64), 7.0, np.float32)
     assert not near_occluders(wall, 16, 90.0, 0.5, 10.0).any()
     before_wall = wall.copy()
-    before_wall[0, 20:40, 20:44] = 6.0                                       # 0.6 degrees against the wall
+    before_wall[0, 20:40, 20:44] = 6.0                                       # 0.7 degrees against the wall
     assert not near_occluders(before_wall, 16, 90.0, 0.5, 10.0).any()
     assert not near_occluders(depth, 16, 90.0, 0.0, 10.0).any()
     assert not near_occluders(depth, 16, 90.0, 0.5, 0.0).any()
     assert not near_occluders(depth, 16, 90.0, 0.5, 30.0).any()             # 14 degrees is within 30
-    assert near_occluders(depth, 16, 90.0, 1.5, 30.0)[0, 20:40, 20:44].all()   # 43 degrees from 1.5 m
+    assert near_occluders(depth, 16, 90.0, 1.5, 30.0)[0, 20:40, 20:44].all()   # 42 degrees from 1.5 m
 
 
 def test_fill_from_nearest_takes_each_masked_pixel_from_the_nearest_other():
