@@ -188,8 +188,8 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     client = make_client(spec.method, cfg, renderer.ctx)
     predictor = spec.predictor or DEFAULT_PREDICTOR
     rc = ReplayConfig(latency_ms=spec.latency_ms, jitter_ms=spec.jitter_ms, rate_mbit=spec.rate_mbit,
-                      loss=spec.loss, tcp=spec.tcp, queue_bytes=spec.queue_bytes, predict=spec.predict, predictor=predictor, seed=spec.seed,
-                      rate_trace=rate_trace,
+                      loss=spec.loss, tcp=spec.tcp, queue_bytes=spec.queue_bytes, predict=spec.predict,
+                      predictor=predictor, seed=spec.seed, rate_trace=rate_trace,
                       rate=session_rate(ladder, spec.target_mbps, spec.crf, spec.viewcell_m, spec.reference_every)
                       if adapt else None, point=point, gaze=gaze,
                       server_delay_ms=spec.server_frame_ms)
@@ -220,8 +220,8 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     rate = lambda b: b * 8 / totals.duration_s / 1e6  # noqa: E731
     c = totals.client
     run = {"latency_ms": spec.latency_ms, "jitter_ms": spec.jitter_ms, "rate_mbit": spec.rate_mbit,
-           "loss": spec.loss, "tcp": spec.tcp, "queue_bytes": spec.queue_bytes, "viewcell_m": spec.viewcell_m, "display_frames": spec.frames,
-           "every": spec.every,
+           "loss": spec.loss, "tcp": spec.tcp, "queue_bytes": spec.queue_bytes, "viewcell_m": spec.viewcell_m,
+           "display_frames": spec.frames, "every": spec.every,
            "seed": spec.seed, "predict": spec.predict, "server_frame_ms": spec.server_frame_ms,
            "predictor": str(predictor) if spec.predict else None, "mbps": rate(totals.bytes_total),
            "mbps_video": rate(totals.bytes_video), "mbps_geometry": rate(totals.bytes_geometry),

@@ -555,9 +555,9 @@ def parse_loss(text: str | float) -> float:
     return value
 
 
-def parse_bytes(text: str | int) -> int:
+def parse_bytes(text: str | int, minimum: int = 1) -> int:
     """Parse a size in bytes, tc-style: ``"64k"`` / ``"64kb"`` (KiB), ``"16m"`` (MiB), ``"1g"``, or a bare number of
-    bytes. The result must be a whole number of bytes > 0."""
+    bytes. The result must be a whole number of bytes, at least ``minimum`` (a queue needs one; a limit may be 0)."""
     if isinstance(text, int) and not isinstance(text, bool):
         value = float(text)
     else:
@@ -565,6 +565,6 @@ def parse_bytes(text: str | int) -> int:
         if m is None:
             raise ValueError(f"cannot parse size {text!r}: expected e.g. '64k', '16m' or a number of bytes")
         value = float(m.group(1)) * _SIZE_UNITS[m.group(2).lower()]
-    if not math.isfinite(value) or value < 1:
-        raise ValueError(f"size {text!r} must be at least 1 byte")
+    if not math.isfinite(value) or value < minimum:
+        raise ValueError(f"size {text!r} must be at least {minimum} byte{'' if minimum == 1 else 's'}")
     return int(value)

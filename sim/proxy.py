@@ -334,8 +334,9 @@ class ShapedProxy:
         sock = socket.socket(family, kind, proto)
         try:
             sock.setblocking(False)
-            for level, option, value in ((socket.SOL_SOCKET, socket.SO_RCVBUF, RELIABLE_RCVBUF_BYTES),
-                                         (socket.IPPROTO_TCP, getattr(socket, "TCP_MAXSEG", None), self.down.mss_bytes)):
+            options = ((socket.SOL_SOCKET, socket.SO_RCVBUF, RELIABLE_RCVBUF_BYTES),
+                       (socket.IPPROTO_TCP, getattr(socket, "TCP_MAXSEG", None), self.down.mss_bytes))
+            for level, option, value in options:
                 with contextlib.suppress(OSError, TypeError):   # without them: a looser emulation, not an error
                     sock.setsockopt(level, option, value)
             await loop.sock_connect(sock, address)

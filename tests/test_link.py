@@ -222,6 +222,15 @@ def test_parse_bytes(text, n):
     assert parse_bytes(text) == n
 
 
+def test_parse_bytes_takes_a_minimum():
+    """A limit may be 0 (`quadcast server --unsent 0`); a queue needs a byte at least (the default)."""
+    assert parse_bytes("0", minimum=0) == 0 and parse_bytes("0k", minimum=0) == 0
+    with pytest.raises(ValueError, match="at least 1 byte"):
+        parse_bytes("0")
+    with pytest.raises(ValueError, match="at least 0 bytes"):
+        parse_bytes("-1k", minimum=0)
+
+
 @pytest.mark.parametrize(
     "func, text",
     [

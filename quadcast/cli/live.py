@@ -80,7 +80,7 @@ def cmd_server(args) -> int:
                        max_peer_connections=args.max_peer_connections, stun=args.stun,
                        pace_mbit=parse_rate_mbit(args.pace) if args.pace else None, adapt=args.adapt,
                        target_mbps=args.target_mbps, ladder=args.ladder, point=args.point,
-                       unsent_bytes=0 if args.unsent.strip() == "0" else parse_bytes(args.unsent))
+                       unsent_bytes=parse_bytes(args.unsent, minimum=0))
 
     async def main() -> None:
         server = LiveServer(cfg, make_server, transport=args.transport)
