@@ -16,7 +16,7 @@ import trimesh
 from scipy.ndimage import zoom
 
 from quadcast.render.scene import (Animation, DirectionalLight, Material, Mesh, PointLight, Scene, SceneObject,
-                                   Spawn, compose_transform)
+                                   Spawn, compose_transform, flat_shaded)
 
 HALF = 8.0          # the open square's half-size
 WALL = 11.0         # back walls of the arcades
@@ -109,15 +109,9 @@ def tile_texture(size=256, seed=5, colors=((0.8, 0.15, 0.1), (0.95, 0.85, 0.2), 
 
 # -------------------------------------------------------------------------------------------------- geometry
 
-def _flat(tm: trimesh.Trimesh) -> trimesh.Trimesh:
-    """Split shared vertices so every face is flat-shaded (boxes, steps)."""
-    tm = tm.copy()
-    tm.unmerge_vertices()
-    return tm
-
-
 def _box(extents, center) -> trimesh.Trimesh:
-    return _flat(trimesh.creation.box(extents=extents, transform=trimesh.transformations.translation_matrix(center)))
+    return flat_shaded(trimesh.creation.box(extents=extents,
+                                            transform=trimesh.transformations.translation_matrix(center)))
 
 
 def _cylinder(radius, height, center, sections=24) -> trimesh.Trimesh:

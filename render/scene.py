@@ -481,7 +481,7 @@ def scene_from_dict(data: dict, base_dir: Path = Path("."), name: str = "scene")
             material = Material(base_color=np.r_[color, 1.0].astype(np.float32))
             kind = m["primitive"]
             if kind == "box":
-                tm = trimesh.creation.box(extents=_numbers(m, "extents", where, 3, [1, 1, 1]))
+                tm = flat_shaded(trimesh.creation.box(extents=_numbers(m, "extents", where, 3, [1, 1, 1])))
             elif kind == "sphere":
                 tm = trimesh.creation.icosphere(subdivisions=3,
                                                 radius=_number(m, "radius", where, 0.5, 0, strict_lo=True))
@@ -524,6 +524,14 @@ def scene_from_dict(data: dict, base_dir: Path = Path("."), name: str = "scene")
     return Scene(str(data.get("name", name)), objects, sun, lights,
                  _numbers(data, "ambient", "scene", 3, [0.12, 0.13, 0.15]),
                  _numbers(data, "sky", "scene", 3, [0.55, 0.70, 0.90]), spawn)
+
+
+def flat_shaded(tm):
+    """A copy of the trimesh with no vertex shared between faces, so each face's normal is its own (boxes, steps):
+    trimesh's boxes share their corners, whose averaged normals would shade a box like a rounded blob."""
+    tm = tm.copy()
+    tm.unmerge_vertices()
+    return tm
 
 
 def _plane(w: float, d: float):
