@@ -72,7 +72,8 @@ class QuasarClient(MethodClient):
     name = "quasar"
 
     def __init__(self, width: int, height: int, fovy_deg: float = 60.0, ctx: moderngl.Context | None = None,
-                 max_quads: int = 8 << 20, method: Method = Method.QUASAR):
+                 max_quads: int = 8 << 20, method: Method = Method.QUASAR, crack_fill: bool = True):
+        """`crack_fill=False` shows the one-pixel cracks between the mesh's quads (see `MeshView`)."""
         self.method = Method(method)
         self.name = self.method.name.lower()
         self.ctx = ctx or gl_context()
@@ -83,7 +84,8 @@ class QuasarClient(MethodClient):
         # planes that the mesh's draws sample and convert (render/atlas_texture.py, render/atlas_colour.glsl)
         self.decoder = AtlasDecoder(max_pixels=MAX_ATLAS_VIEWS * width * height, output="yuv420")
         self.mesh = QuadMesh(self.ctx)
-        self.view = MeshView(self.ctx, width, height)
+        self.crack_fill = bool(crack_fill)
+        self.view = MeshView(self.ctx, width, height, crack_fill=self.crack_fill)
         self.max_quads = max_quads
         self.cache: QuadCache | None = None
         self.reference_id = -1
@@ -282,7 +284,8 @@ class QuasarClient(MethodClient):
         if stereo is None or stereo.synth.dominant != dominant or stereo.synth.ipd != float(ipd):
             if stereo is not None:
                 stereo.release()
-            stereo = self._stereo = MeshStereo(self.ctx, self.width, self.height, ipd, dominant)
+            stereo = self._stereo = MeshStereo(self.ctx, self.width, self.height, ipd, dominant,
+                                               crack_fill=self.crack_fill)
         return stereo
 
     def render_stereo(self, pose: Pose, mode: str = "yoro") -> tuple[np.ndarray, np.ndarray]:

@@ -503,13 +503,14 @@ class StereoFrame:
 class MeshStereo:
     """Stereo for a client that shows a `quadcast.render.quadmesh.QuadMesh`: the dominant eye is drawn into the client's
     `MeshView`, whose colour and linear-depth targets feed the `StereoSynthesizer`; mode 2 re-renders the masked
-    pixels of the other eye from the same mesh into a second `MeshView` (`MeshView.render` with `cull=`)."""
+    pixels of the other eye from the same mesh into a second `MeshView` (`MeshView.render` with `cull=`), which
+    fills cracks as the client's view does (`crack_fill`)."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int, ipd: float = DEFAULT_IPD_M,
-                 dominant: str = "left", **synth_options):
+                 dominant: str = "left", crack_fill: bool = True, **synth_options):
         self.ctx = ctx
         self.synth = StereoSynthesizer(ctx, width, height, ipd, dominant=dominant, **synth_options)
-        self.other_view = MeshView(ctx, width, height)
+        self.other_view = MeshView(ctx, width, height, crack_fill=crack_fill)
         # Warm-up: drivers compile shaders on first use; keep that out of the first frame's timings. Both row
         # passes: with the edge reject (mode "rerender") and without it (mode "yoro").
         probe = Camera.perspective(Pose([0.0, 0.0, 0.0]), width, height)
@@ -566,8 +567,7 @@ class MeshStereo:
 
     def release(self) -> None:
         self.synth.release()
-        for obj in (self.other_view.fbo, self.other_view.color, self.other_view.view_depth, self.other_view.depth):
-            obj.release()
+        self.other_view.release()
 
 
 def stereo_pair(client, pose, mode: str = "yoro") -> tuple[np.ndarray, np.ndarray]:

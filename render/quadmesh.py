@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import moderngl
 import numpy as np
@@ -47,6 +48,9 @@ MAX_RUN, MAX_STACK, RUN_TOLERANCE, RUN_MIN_COS = 16, 8, 1e-3, 0.999
 # its quads one by one. The pairs need only meet within that distance (no normals).
 RUN_PARALLAX_PX, RUN_PARALLAX_M = 0.5, 0.5
 MAX_RUN_GRID = 1 << 23   # grid cells (32 MiB): a larger layer is drawn quad by quad
+CRACK_TOLERANCE = 0.05  # MeshView's crack fill: the neighbours' depths agree within this share, relative
+CRACK_SHARE = 16        # ... and it keeps at most one crack per this many pixels of the view
+CRACK_UNIT = 14         # ... and samples the first layer's targets from this texture unit and the next
 MIN_RUN_QUADS = 16384    # a smaller layer too: its triangles cost less than finding its runs (about 1 ms)
 
 
@@ -412,10 +416,12 @@ class QuadMesh:
         cache's own)."""
         self.current = None if camera is None else CurrentView(camera, tuple(atlas_rect))
 
-    def draw(self, camera: Camera, atlas: AtlasTexture | moderngl.Texture | None) -> None:
+    def draw(self, camera: Camera, atlas: AtlasTexture | moderngl.Texture | None,
+             after_first: Callable[[], None] | None = None) -> None:
         """Render the mesh from `camera` into the bound framebuffer (depth test on): colour from `atlas` (the
         decoded planes, or an RGBA texture with linear filtering) and view depth into its two targets, or, without
-        an atlas, the view depth alone into its one target."""
+        an atlas, the view depth alone into its one target. `after_first` runs after the first layer's draw
+        (MeshView's crack fill), which must leave the same framebuffer bound and the depth test on."""
         current = self.current if atlas is not None else None
         view = camera.view_matrix()
         suffix = "_rgb" if isinstance(atlas, moderngl.Texture) else ""
@@ -434,7 +440,9 @@ class QuadMesh:
             aw, ah = atlas.size
             set_uniforms(self.programs["refresh" + suffix], u_current_rect=(x / aw, y / ah, w / aw, h / ah),
                          u_current_uv_rect=uv_rect(current.atlas_rect, atlas.size))
-        for layer, buf in self.layers:
+        for place, (layer, buf) in enumerate(self.layers):
+            if place == 1 and after_first is not None:
+                after_first()
             name = "depth" if atlas is None else "refresh" if current is not None and layer.cached else "colour"
             key = name if atlas is None else name + suffix
             prog = self.programs[key]
@@ -446,15 +454,27 @@ class QuadMesh:
                 set_uniforms(prog, u_layer_to_current=gl_matrix(current.camera.view_projection()
                                                                 @ layer.camera.pose.camera_to_world()))
             buf.draw(key)
+        if len(self.layers) == 1 and after_first is not None:
+            after_first()
 
 
 class MeshView:
     """An off-screen target for drawing a `QuadMesh` at one size: colour (alpha 1 where drawn), linear view depth
     (R32F, 0 where nothing was drawn) and the depth buffer. With `depth_only` (a server finding what the client's
-    mesh covers) no colour: the mesh is drawn without its atlas, the same depths for less work."""
+    mesh covers) no colour: the mesh is drawn without its atlas, the same depths for less work.
+
+    A colour view fills the one-pixel cracks of the mesh's first layer (a client's cache) before the other layers
+    are drawn (`crack_fill=False` leaves them). Where quads of different sizes meet on a curved surface, or two
+    flattened quads' planes part, the seam between them opens once the eye moves away from the frame's pose, and a
+    farther layer or the far field shows through in dots and one-pixel lines. A pixel the first layer missed whose
+    two opposite neighbours -- in its row, its column or a diagonal -- it drew at depths that agree takes their mean
+    colour and depth (`crack_find.frag.glsl`, which runs only where the first layer drew nothing: the depth test
+    leaves out the rest), and is drawn as a point with that depth (`crack_points.vert.glsl`), so the layers drawn
+    after it are hidden behind it as behind the surface. A layer tiles its own view, so a gap that view saw
+    (between a railing's balusters) holds the layer's farther surface, and stays."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int, clear_color=(0.0, 0.0, 0.0),
-                 depth_only: bool = False):
+                 depth_only: bool = False, crack_fill: bool = True):
         self.ctx, self.width, self.height = ctx, width, height
         self.depth_only = depth_only
         self.color = None if depth_only else ctx.texture((width, height), 4)
@@ -464,12 +484,13 @@ class MeshView:
         targets = [self.view_depth] if depth_only else [self.color, self.view_depth]
         self.fbo = ctx.framebuffer(targets, self.depth)
         self.clear_color = clear_color
+        self._cracks = _CrackFill(ctx, self) if crack_fill and not depth_only else None
 
     def render(self, mesh: QuadMesh, camera: Camera, atlas: AtlasTexture | moderngl.Texture | None = None,
                cull: CullFn | None = None) -> None:
         """Clear and draw `mesh` from `camera` (depth test LESS), coloured from `atlas` (none for a depth-only
-        view). `cull` (see `quadcast.render.renderer.CullFn`) restricts the draw to the pixels it leaves at depth
-        1 (client.stereo's mode 2)."""
+        view), filling the first layer's cracks. `cull` (see `quadcast.render.renderer.CullFn`) restricts the draw
+        to the pixels it leaves at depth 1 (client.stereo's mode 2)."""
         if (atlas is None) != self.depth_only:
             raise ValueError("MeshView.render: a depth-only view takes no atlas, a colour view needs one")
         self.fbo.use()
@@ -480,7 +501,7 @@ class MeshView:
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-        mesh.draw(camera, atlas)
+        mesh.draw(camera, atlas, None if self._cracks is None else lambda: self._cracks.fill(camera))
 
     def _check_color(self) -> None:
         if self.depth_only:
@@ -494,11 +515,58 @@ class MeshView:
         return rgb.reshape(self.height, self.width, 3)[::-1].copy()
 
     def read_drawn(self) -> np.ndarray:
-        """Where the mesh drew, (H, W) bool, top row first: every mesh fragment writes a view depth > 0 where the
-        target is cleared to 0."""
+        """Where the mesh drew (or filled a crack), (H, W) bool, top row first: every mesh fragment writes a view
+        depth > 0 where the target is cleared to 0."""
         return read_texture(self.view_depth, 1, "f4") > 0
 
     def read_depth(self) -> np.ndarray:
         """Linear view depth, top row first; inf where nothing was drawn."""
         depth = read_texture(self.view_depth, 1, "f4")
         return np.where(depth > 0, depth, np.inf).astype(np.float32)
+
+    def release(self) -> None:
+        for obj in (self.fbo, self.color, self.view_depth, self.depth):
+            if obj is not None:
+                obj.release()
+        if self._cracks is not None:
+            self._cracks.release()
+
+
+class _CrackFill:
+    """MeshView's crack fill (see its doc): a pass that lists the cracks, then a draw of them as points."""
+
+    def __init__(self, ctx: moderngl.Context, view: MeshView):
+        self.ctx, self.view = ctx, view
+        self.capacity = max(1, view.width * view.height // CRACK_SHARE)
+        # the points' indirect draw command {count, instances, first, base instance}, then one uvec4 per crack
+        self.buffer = ctx.buffer(reserve=16 + 16 * self.capacity)
+        self.reset = np.array([0, 1, 0, 0], np.uint32).tobytes()
+        self.find = program(ctx, HERE / "fullscreen.vert.glsl", HERE / "crack_find.frag.glsl")
+        self.points = program(ctx, HERE / "crack_points.vert.glsl", HERE / "crack_points.frag.glsl")
+        self.find_vao = ctx.vertex_array(self.find, [])
+        self.points_vao = ctx.vertex_array(self.points, [])
+        self.depth_fbo = ctx.framebuffer(depth_attachment=view.depth)   # the find pass writes no target
+        self.depth_fbo.depth_mask = False
+
+    def fill(self, camera: Camera) -> None:
+        """After the first layer's draw into `view.fbo` (bound, depth test on): find its cracks, draw them."""
+        ctx, view = self.ctx, self.view
+        self.buffer.write(self.reset)
+        self.buffer.bind_to_storage_buffer(0)
+        view.color.use(CRACK_UNIT)          # units the mesh's draws leave alone (they bind the atlas's from 0)
+        view.view_depth.use(CRACK_UNIT + 1)
+        self.depth_fbo.use()
+        ctx.depth_func = "<="      # the triangle lies on the far plane: it passes only where nothing was drawn
+        set_uniforms(self.find, u_color=CRACK_UNIT, u_view_depth=CRACK_UNIT + 1, u_tolerance=CRACK_TOLERANCE,
+                     u_capacity=self.capacity, u_z=1.0)
+        self.find_vao.render(moderngl.TRIANGLES, vertices=3)
+        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT)
+        view.fbo.use()
+        ctx.depth_func = "<"
+        set_uniforms(self.points, u_proj=gl_matrix(camera.projection_matrix()),
+                     u_size=(view.width, view.height))
+        self.points_vao.render_indirect(self.buffer, moderngl.POINTS, count=1)
+
+    def release(self) -> None:
+        for obj in (self.find_vao, self.points_vao, self.depth_fbo, self.buffer):
+            obj.release()

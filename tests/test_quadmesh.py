@@ -255,7 +255,8 @@ def test_depth_only_view_gives_the_colour_views_depths(ctx):
     mesh = QuadMesh(ctx)
     mesh.build([MeshLayer(cache.quads, camera, (0, 0, w, h))], (w, h))
     atlas = ctx.texture((w, h), 4, rng.integers(0, 256, (h, w, 4), dtype=np.uint8).tobytes())
-    colour, depth_only = MeshView(ctx, w, h), MeshView(ctx, w, h, depth_only=True)
+    # the colour view without its crack fill, which the depth-only view has not
+    colour, depth_only = MeshView(ctx, w, h, crack_fill=False), MeshView(ctx, w, h, depth_only=True)
     colour.render(mesh, eye, atlas)
     depth_only.render(mesh, eye)
     expected = colour.read_depth()
@@ -389,3 +390,48 @@ def test_sharp_texture_keeps_texels_and_ramps_over_the_middle_of_each_interval(c
     np.testing.assert_array_equal(sharp[[0, 8]], row[[0, 2]])           # texel centres: the texels themselves
     for b in (src, out, tex):
         b.release()
+
+
+def test_crack_fill_closes_the_first_layers_one_pixel_cracks(ctx):
+    """A pixel the first layer (a wall 2 m away, one quad per pixel) missed between two of its pixels that agree in
+    depth takes their mean colour and depth, and hides the layer behind it (a far wall) as the surface does; a gap
+    two pixels wide, a gap the first layer itself shows a farther surface through, and the border stay as drawn."""
+    w, h = 16, 12
+    camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
+    missing = np.zeros((h, w), bool)                  # top row first, as the quads' y
+    missing[2:6, 4] = True                            # a vertical seam
+    missing[8, 2:6] = True                            # a horizontal one
+    missing[1, 9] = True                              # a single dot
+    missing[:, 11:13] = True                          # a gap two pixels wide
+    missing[0, 0] = True                              # a corner: no pair of neighbours
+    deep = np.zeros((h, w), bool)
+    deep[9:11, 7] = True                              # the first layer's own surface 20 m away: a real gap
+    near = [(x, y, 0) for y in range(h) for x in range(w) if not missing[y, x] and not deep[y, x]]
+    layers = [plane_quads(camera, near, [0, 0, 1], -2.0),
+              plane_quads(camera, [(x, y, 0) for y, x in zip(*np.nonzero(deep))], [0, 0, 1], -20.0)]
+    first = QuadSet.concatenate(layers)
+    far = plane_quads(camera, [(x, y, 0) for y in range(h) for x in range(w)], [0, 0, 1], -50.0)
+    atlas_img = np.zeros((h, 2 * w, 4), np.uint8)
+    atlas_img[:, :w, 0] = np.arange(w)[None, :] * 10  # the first layer: red rises along x, green along y
+    atlas_img[:, :w, 1] = np.arange(h)[:, None] * 10
+    atlas_img[:, w:, 2] = 255                         # the far layer: blue
+    atlas_img[..., 3] = 255
+    atlas = ctx.texture((2 * w, h), 4, atlas_img.tobytes())
+    mesh = QuadMesh(ctx)
+    mesh.build([MeshLayer(first, camera, (0, 0, w, h)), MeshLayer(far, camera, (w, 0, w, h))], (2 * w, h))
+    images = {}
+    for fill in (True, False):
+        view = MeshView(ctx, w, h, crack_fill=fill)
+        view.render(mesh, camera, atlas)
+        images[fill] = view.read_color().astype(int), view.read_depth()
+        view.release()
+    (got, depth), (plain, plain_depth) = images[True], images[False]
+    cracks = np.zeros((h, w), bool)
+    cracks[2:6, 4] = cracks[8, 2:6] = cracks[1, 9] = True
+    assert np.allclose(plain_depth[cracks], 50.0, rtol=1e-3) and (plain[cracks][:, 2] == 255).all()
+    assert np.allclose(depth[cracks], 2.0, rtol=1e-3)
+    expected = atlas_img[:, :w, :3].astype(int)       # the mean of neighbours 20 apart in one channel
+    assert np.abs(got[cracks] - expected[cracks]).max() <= 2
+    keep = ~cracks
+    assert np.array_equal(got[keep], plain[keep]) and np.array_equal(depth[keep], plain_depth[keep])
+    assert np.allclose(depth[deep], 20.0, rtol=1e-3) and np.allclose(depth[:, 11:13], 50.0, rtol=1e-3)

@@ -194,3 +194,16 @@ def test_monastery_spawn_is_its_main_courtyard():
     scene = monastery_scene()
     x, y, z = scene.spawn.position
     assert (x, z) == (-3.7, 1.5) and y == pytest.approx(scene.bounds()[0][1] + 2.0)
+
+
+@pytest.mark.parametrize("name", ["checker", "duck_ground", "open_space"])
+def test_the_scene_files_in_docs_load(name):
+    """docs/scenes' files (the README's untuned scenes) point into the checkout's .venv, where `make` installs
+    pybullet_data."""
+    from pathlib import Path
+    pybullet_data = pytest.importorskip("pybullet_data")
+    root = Path(__file__).resolve().parents[1]
+    if not (root / ".venv").exists() or root / ".venv" not in Path(pybullet_data.getDataPath()).resolve().parents:
+        pytest.skip("pybullet_data is not in this checkout's .venv")
+    scene = load_scene(root / "docs" / "scenes" / f"{name}.json")
+    assert scene.name == name and len(scene.objects) >= 3 and scene.spawn is not None
