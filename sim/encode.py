@@ -32,8 +32,8 @@ def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames
         raise ValueError(f"--frames must be >= 1, got {frames}")
     times = np.arange(frames) / server_hz
     if times[-1] > trace.duration:
-        raise ValueError(f"trace {trace.name!r} lasts {trace.duration:.1f} s; {frames} frames at {server_hz:g} Hz "
-                         f"need {times[-1]:.1f} s")
+        raise ValueError(f"trace {trace.name!r} lasts {trace.duration:.3f} s; {frames} frames at {server_hz:g} Hz "
+                         f"need {times[-1]:.3f} s")
     settings = QuasarSettings(width=size[0], height=size[1], layers=layers, viewcell_radius=viewcell,
                               reference_every=every, video=VideoSettings(crf=crf))
     server = QuasarServer(DeferredRenderer(scene), settings)

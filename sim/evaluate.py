@@ -158,10 +158,11 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     scene = load_scene(spec.scene)
     trace = scene_trace(spec.trace, scene, spec.anchor, spec.start)
     needed = spec.frames / 60.0
-    if needed > trace.duration + 1e-9:
+    if needed > trace.duration + 1e-6:        # a microsecond: traces keep their times in milliseconds, rounded
         after = f" after --start {spec.start:g} s" if spec.start else ""
-        raise ValueError(f"trace {spec.trace!r} lasts {trace.duration:.1f} s{after}; {spec.frames} frames at 60 Hz "
-                         f"need {needed:.1f} s")
+        fit = int(np.floor((trace.duration + 1e-6) * 60.0))
+        raise ValueError(f"trace {spec.trace!r} lasts {trace.duration:.3f} s{after}; {spec.frames} frames at 60 Hz "
+                         f"need {needed:.3f} s (--frames {fit} fits)")
     if spec.every < 1 or spec.frames < 1:
         raise ValueError("--frames and --every must be >= 1")
     adapt = spec.adapt or spec.target_mbps is not None

@@ -204,3 +204,15 @@ def test_eval_queue_needs_tcp(tmp_path, capsys):
     assert main(["eval", "--scene", "builtin:courtyard", "--trace", "builtin:walk", "--method", "atw", "--queue", "64k",
                  "--out", str(tmp_path)]) == 2
     assert "--queue is the TCP downlink's queue" in capsys.readouterr().err
+
+
+def test_a_trace_a_frame_too_short_says_how_many_frames_fit(tmp_path):
+    """240 poses at 60 Hz last 3.983 s: the 240th display frame (at 4.000 s) is past the end, and the error says so
+    to the millisecond, with the --frames that fits (it once read "lasts 4.0 s; 240 frames at 60 Hz need 4.0 s")."""
+    t = np.arange(240) / 60.0
+    rows = np.column_stack([np.zeros_like(t), np.full_like(t, 1.6), -0.5 * t, np.zeros((240, 3)), 1000.0 * t])
+    trace = tmp_path / "short.txt"
+    np.savetxt(trace, rows, fmt="%.5f")
+    message = r"lasts 3\.983 s; 240 frames at 60 Hz need 4\.000 s \(--frames 239 fits\)"
+    with pytest.raises(ValueError, match=message):
+        run_eval(EvalSpec(method="atw", **{**TINY, "trace": str(trace), "frames": 240}))
