@@ -7,7 +7,7 @@ layout(early_fragment_tests) in;
 uniform sampler2D u_color;        // the first layer's colour
 uniform sampler2D u_view_depth;   // its linear view depth, 0 where nothing was drawn
 uniform float u_tolerance;        // relative depth: the neighbours agree within it
-uniform uint u_capacity;          // cracks the list holds; more are left open
+uniform uint u_capacity;          // cracks the list holds; more are left open (the draw never reads past it)
 
 struct DrawCommand { uint count; uint instances; uint first; uint base_instance; };
 layout(std430, binding = 0) buffer Cracks {
@@ -30,6 +30,7 @@ void main() {
         vec4 colour = 0.5 * (texelFetch(u_color, a, 0) + texelFetch(u_color, b, 0));
         uint i = atomicAdd(command.count, 1u);
         if (i < u_capacity) cracks[i] = uvec4(uvec2(p), floatBitsToUint(0.5 * (da + db)), packUnorm4x8(colour));
+        else atomicAdd(command.count, 0xFFFFFFFFu);     // one too many: the count ends at the capacity
         break;
     }
     discard;

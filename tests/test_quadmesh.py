@@ -435,3 +435,26 @@ def test_crack_fill_closes_the_first_layers_one_pixel_cracks(ctx):
     keep = ~cracks
     assert np.array_equal(got[keep], plain[keep]) and np.array_equal(depth[keep], plain_depth[keep])
     assert np.allclose(depth[deep], 20.0, rtol=1e-3) and np.allclose(depth[:, 11:13], 50.0, rtol=1e-3)
+
+
+def test_crack_fill_keeps_to_its_list_when_there_are_more_cracks(ctx):
+    """A first layer with every other column missing (a crack in every other pixel) fills as many as its list holds
+    and draws no point past it."""
+    from quadcast.render.quadmesh import CRACK_SHARE
+    w, h = 64, 48
+    camera = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
+    first = plane_quads(camera, [(x, y, 0) for y in range(h) for x in range(0, w, 2)], [0, 0, 1], -2.0)
+    far = plane_quads(camera, [(x, y, 0) for y in range(h) for x in range(w)], [0, 0, 1], -50.0)
+    atlas = ctx.texture((2 * w, h), 4, np.full((h, 2 * w, 4), 255, np.uint8).tobytes())
+    mesh = QuadMesh(ctx)
+    mesh.build([MeshLayer(first, camera, (0, 0, w, h)), MeshLayer(far, camera, (w, 0, w, h))], (2 * w, h))
+    view = MeshView(ctx, w, h)
+    view.render(mesh, camera, atlas)
+    depth = view.read_depth()
+    filled = np.isclose(depth[:, 1:-1:2], 2.0, rtol=1e-3).sum()   # the missing columns with a drawn pair beside
+    assert filled == w * h // CRACK_SHARE < (w // 2 - 1) * h
+    assert np.allclose(depth[:, 0::2], 2.0, rtol=1e-3)
+    assert np.isfinite(depth).all()
+    drawn_points = int(np.frombuffer(view._cracks.buffer.read(4), np.uint32)[0])   # the indirect draw's count
+    assert drawn_points == view._cracks.capacity == w * h // CRACK_SHARE
+    view.release()
