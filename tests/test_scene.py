@@ -101,22 +101,18 @@ def test_mesh_normals_without_a_direction_are_repaired_and_bad_positions_refused
         Mesh("box", positions, box.vertex_normals, box.faces, Material())
 
 
-
 def test_box_primitive_faces_are_flat(courtyard):
     """A scene file's box is shaded as a box: each corner's normal is its own face's, not the average of the three
-    faces that meet there (which shaded it like a rounded blob and tilted the quads made from it)."""
-    scene = scene_from_dict({"models": [{"primitive": "box", "extents": [1, 2, 3]}]})
-    mesh = scene.objects[0].mesh
-    tri = mesh.positions[mesh.indices]
-    face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    face_normals /= np.linalg.norm(face_normals, axis=1, keepdims=True)
-    assert np.allclose(mesh.normals[mesh.indices], face_normals[:, None, :], atol=1e-6)
-    # the built-in courtyard's boxes are made the same way
-    pedestal = next(o.mesh for o in courtyard.objects if o.mesh.name == "planter0")
-    tri = pedestal.positions[pedestal.indices]
-    face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    face_normals /= np.linalg.norm(face_normals, axis=1, keepdims=True)
-    assert np.allclose(pedestal.normals[pedestal.indices], face_normals[:, None, :], atol=1e-5)
+    faces that meet there (which shaded it like a rounded blob and tilted the quads made from it); the built-in
+    courtyard's boxes are made the same way."""
+    planter = next(o.mesh for o in courtyard.objects if o.mesh.name == "planter0")
+    box = scene_from_dict({"models": [{"primitive": "box", "extents": [1, 2, 3]}]}).objects[0].mesh
+    for mesh in (box, planter):
+        tri = mesh.positions[mesh.indices]
+        face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        face_normals /= np.linalg.norm(face_normals, axis=1, keepdims=True)
+        assert np.allclose(mesh.normals[mesh.indices], face_normals[:, None, :], atol=1e-5), mesh.name
+
 
 def test_simplified_meshes_keep_their_surface_and_their_vertices_attributes():
     """`Mesh.simplified`: about the triangles asked for, at least KEPT_AREA of the area, each vertex with the normal
