@@ -441,8 +441,6 @@ class QuadMesh:
             set_uniforms(self.programs["refresh" + suffix], u_current_rect=(x / aw, y / ah, w / aw, h / ah),
                          u_current_uv_rect=uv_rect(current.atlas_rect, atlas.size))
         for place, (layer, buf) in enumerate(self.layers):
-            if place == 1 and after_first is not None:
-                after_first()
             name = "depth" if atlas is None else "refresh" if current is not None and layer.cached else "colour"
             key = name if atlas is None else name + suffix
             prog = self.programs[key]
@@ -454,8 +452,8 @@ class QuadMesh:
                 set_uniforms(prog, u_layer_to_current=gl_matrix(current.camera.view_projection()
                                                                 @ layer.camera.pose.camera_to_world()))
             buf.draw(key)
-        if len(self.layers) == 1 and after_first is not None:
-            after_first()
+            if place == 0 and after_first is not None:
+                after_first()
 
 
 class MeshView:
