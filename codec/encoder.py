@@ -79,6 +79,12 @@ class VideoSettings:
             picture into slices, which adds no latency.
         fps: nominal frame rate; it sets the stream time base and is what the
             bitrate mode budgets bits against.
+        chroma_qp_offset: x264's ``chroma-qp-offset`` (-12 .. 12), the step
+            from each block's luma quantizer to its chroma quantizers (the
+            PPS's ``chroma_qp_index_offset``, which every decoder reads).
+            Negative codes colour finer than brightness; 0 is x264's default.
+            QUASAR's server takes -6 (quadcast.protocol.methods.
+            DEFAULT_CHROMA_QP_OFFSET).
     """
 
     crf: float | None = 23
@@ -87,6 +93,7 @@ class VideoSettings:
     gop: int | None = None
     threads: int = 0
     fps: float = 60.0
+    chroma_qp_offset: int = 0
 
     def __post_init__(self) -> None:
         if self.bitrate_kbps is None:
@@ -109,6 +116,9 @@ class VideoSettings:
             raise ValueError(f"VideoSettings.threads must be >= 0; got {self.threads}")
         if not self.fps > 0:
             raise ValueError(f"VideoSettings.fps must be positive; got {self.fps}")
+        if not (isinstance(self.chroma_qp_offset, int) and -12 <= self.chroma_qp_offset <= 12):
+            raise ValueError(f"VideoSettings.chroma_qp_offset must be an integer in [-12, 12]; "
+                             f"got {self.chroma_qp_offset!r}")
 
 
 @dataclass(frozen=True)
@@ -176,7 +186,8 @@ class AtlasEncoder:
         # chromaloc=1: the VUI says chroma sits at the centre of each 2x2 block, where the RGB conversion
         # (_CHROMA_INPUT) puts it and the clients' conversion reads it (render/atlas_colour.glsl); H.264's
         # default when unsaid is left-sited
-        x264_params = [f"keyint={keyint}", "scenecut=0", "bframes=0", "repeat-headers=1", "chromaloc=1"]
+        x264_params = [f"keyint={keyint}", "scenecut=0", "bframes=0", "repeat-headers=1", "chromaloc=1",
+                       f"chroma-qp-offset={s.chroma_qp_offset}"]
         options = {"preset": s.preset, "tune": "zerolatency", "forced-idr": "1"}
         if s.bitrate_kbps is not None:
             kbps = int(s.bitrate_kbps)

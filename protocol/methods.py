@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["METHODS", "STEREO_METHODS", "DEFAULT_CRF", "MethodConfig", "check_method", "method_crf", "MAX_ATLAS_VIEWS",
-           "meshwarp_render_size"]
+__all__ = ["METHODS", "STEREO_METHODS", "DEFAULT_CRF", "DEFAULT_CHROMA_QP_OFFSET", "MethodConfig", "check_method",
+           "method_crf", "method_video", "MAX_ATLAS_VIEWS", "meshwarp_render_size"]
 
 METHODS = ("quasar", "quadstream", "meshwarp", "meshwarp120", "atw")
 """Every method: QUASAR, the QuadStream-like baseline, MeshWarp (60° or, as meshwarp120, 120° at twice the
@@ -46,16 +46,29 @@ class MethodConfig:
     crf: float | None = None      # x264 CRF of the method's video; None: the method's own (DEFAULT_CRF)
 
 
-DEFAULT_CRF = {"quasar": 18.0}
+DEFAULT_CRF = {"quasar": 19.0}
 """Each method's video quality when none is asked for (x264 CRF; 23 for the others). QUASAR's atlas carries the
-colour of every layer it sends, and its error floor at small pose errors is the video's: CRF 18 buys the courtyard's
-real-trace runs 9% lower FLIP for 15% more Mbps, well inside a quarter of QuadStream's rate (README, `quadcast bench
-quality`); the baselines keep x264's default."""
+colour of every layer it sends, and its error floor at small pose errors is the video's: CRF 18 bought the
+courtyard's real-trace runs 9% lower FLIP for 15% more Mbps, well inside a quarter of QuadStream's rate (README,
+`quadcast bench quality`). Since the colour is coded finer (`VideoSettings.chroma_qp_offset`), CRF 19 sends about
+what CRF 18 sent, for lower FLIP (README, "Colour coded finer"). The baselines keep x264's default."""
+
+DEFAULT_CHROMA_QP_OFFSET = {"quasar": -6}
+"""Each method's x264 chroma-qp-offset (`VideoSettings.chroma_qp_offset`; 0, x264's default, for the others): QUASAR
+codes its atlas's colour 6 quantizer steps finer than its brightness. FLIP scores colour differences: in the
+benchmark's scenes bits spent on colour lower it more than the same bits spent through a lower CRF (README, "Colour
+coded finer", which also gives MeshWarp's figures with the same offset)."""
 
 
 def method_crf(name: str, crf: float | None) -> float:
     """The CRF a method's video is encoded with: `crf` if given, else the method's default."""
     return float(crf) if crf is not None else DEFAULT_CRF.get(name, 23.0)
+
+
+def method_video(name: str, crf: float | None) -> dict:
+    """The keyword arguments of a method's `quadcast.codec.encoder.VideoSettings`: its CRF (`method_crf`) and its
+    chroma quantizer offset (DEFAULT_CHROMA_QP_OFFSET)."""
+    return {"crf": method_crf(name, crf), "chroma_qp_offset": DEFAULT_CHROMA_QP_OFFSET.get(name, 0)}
 
 
 def check_method(name: str, option: str = "method") -> str:

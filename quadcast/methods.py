@@ -13,11 +13,11 @@ from quadcast.protocol.frame import Method
 from quadcast.codec.encoder import VideoSettings
 from quadcast.render.renderer import DeferredRenderer
 from quadcast.server.method import MethodServer
-from quadcast.protocol.methods import METHODS, MethodConfig, check_method, method_crf
+from quadcast.protocol.methods import METHODS, MethodConfig, check_method, method_video
 
 def make_server(name: str, renderer: DeferredRenderer, config: MethodConfig) -> MethodServer:
     check_method(name)
-    video = VideoSettings(crf=method_crf(name, config.crf))
+    video = VideoSettings(**method_video(name, config.crf))
     if name == "quasar":
         from quadcast.server.quasar import QuasarServer, QuasarSettings
         return QuasarServer(renderer, QuasarSettings(width=config.width, height=config.height,

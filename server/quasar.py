@@ -9,7 +9,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from quadcast.protocol.frame import FramePayload, FrameType, Method
-from quadcast.protocol.methods import DEFAULT_CRF
+from quadcast.protocol.methods import method_video
 from quadcast.protocol.quads import LayerKind, QuadFrame, QuadLayer, QuadSet, encode_quad_frame
 from quadcast.render.camera import Camera, Pose
 from quadcast.render.quadcache import QuadCache
@@ -85,7 +85,7 @@ class QuasarSettings:
     # thresholds are already 10x relaxed: 7 bits (0.4%) cost <= 0.0001 FLIP on the real-trace benchmark and 5-6% of
     # the rate (README, "Fill-in depth precision")
     fill_depth_bits: int | None = 7
-    video: VideoSettings = field(default_factory=lambda: VideoSettings(crf=DEFAULT_CRF["quasar"]))
+    video: VideoSettings = field(default_factory=lambda: VideoSettings(**method_video("quasar", None)))
 
     def __post_init__(self):
         if self.width % 2 or self.height % 2 or self.width < 16 or self.height < 16:

@@ -12,6 +12,7 @@ from tqdm import tqdm
 
 from quadcast.codec.encoder import VideoSettings
 from quadcast.protocol.frame import encode_frame_payload, residual_to_reference_bytes
+from quadcast.protocol.methods import method_video
 from quadcast.render.camera import Pose
 from quadcast.render.renderer import DeferredRenderer
 from quadcast.render.scene import load_scene
@@ -22,7 +23,7 @@ __all__ = ["encode_trace"]
 
 
 def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames: int, viewcell: float,
-                 every: int, out: Path, layers: int = 4, crf: float = 18.0, server_hz: float = 30.0,
+                 every: int, out: Path, layers: int = 4, crf: float | None = None, server_hz: float = 30.0,
                  quiet: bool = False) -> dict:
     """Run QUASAR's server along a trace (poses at `server_hz`, no network); write every frame's payload, the
     H.264 stream and stats.json. Returns the stats."""
@@ -35,7 +36,7 @@ def encode_trace(scene_spec: str, trace_spec: str, size: tuple[int, int], frames
         raise ValueError(f"trace {trace.name!r} lasts {trace.duration:.3f} s; {frames} frames at {server_hz:g} Hz "
                          f"need {times[-1]:.3f} s")
     settings = QuasarSettings(width=size[0], height=size[1], layers=layers, viewcell_radius=viewcell,
-                              reference_every=every, video=VideoSettings(crf=crf))
+                              reference_every=every, video=VideoSettings(**method_video("quasar", crf)))
     server = QuasarServer(DeferredRenderer(scene), settings)
     out.mkdir(parents=True, exist_ok=True)
     records, kinds = [], []
