@@ -426,3 +426,28 @@ def test_a_points_rate_counts_its_self_contained_frame_once_per_reference_cycle(
     # an unused point: the nearest used one scaled by the ladder's ratio of the two
     k = j + 1
     assert c.bytes_per_frame(k) == pytest.approx(c.bytes_per_frame(j) * LADDER[k].mbps / LADDER[j].mbps)
+
+
+def test_bench_ladder_measures_again_what_other_code_measured(tmp_path):
+    """`bench ladder` reuses an earlier run's rows only when the same code measured them: the code's fingerprint
+    follows every source and shader byte (not data files), and a row from other code is not taken."""
+    import json
+
+    from quadcast.cli.bench import code_fingerprint, reusable_ladder_rows
+    tree = tmp_path / "code"
+    (tree / "render").mkdir(parents=True)
+    (tree / "mod.py").write_text("x = 1\n")
+    (tree / "render" / "stage.comp").write_text("void main() {}\n")
+    first = code_fingerprint(tree)
+    assert code_fingerprint(tree) == first and len(first) == 16
+    (tree / "render" / "ladder.json").write_text("{}")                   # data: not code
+    assert code_fingerprint(tree) == first
+    (tree / "render" / "stage.comp").write_text("void main() { }\n")    # one shader byte
+    assert code_fingerprint(tree) != first
+    assert len(code_fingerprint()) == 16                                  # the installed package
+
+    run = {"size": [640, 360], "frames": 48, "code": first}
+    rows = [{"name": "a", "run": run}, {"name": "b", "run": dict(run, code="0" * 16)}]
+    (tmp_path / "all.json").write_text(json.dumps(rows))
+    assert list(reusable_ladder_rows(tmp_path / "all.json", run)) == ["a"]
+    assert reusable_ladder_rows(tmp_path / "missing.json", run) == {}

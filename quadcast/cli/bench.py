@@ -425,6 +425,34 @@ def ladder_grid() -> list:
     return points
 
 
+def code_fingerprint(root: Path | None = None) -> str:
+    """A hash of the code under `root` (default: the installed quadcast package): every .py and shader file's path
+    and bytes, symlinked folders followed. `bench ladder` keys the rows it keeps to it, so that rows measured by
+    other code are measured again rather than reused."""
+    import hashlib
+    import os
+
+    import quadcast
+    root = Path(quadcast.__file__).parent if root is None else Path(root)
+    digest = hashlib.sha256()
+    files = []
+    for folder, dirs, names in os.walk(root, followlinks=True):
+        dirs[:] = sorted(d for d in dirs if d != "__pycache__")
+        files += [Path(folder) / n for n in names if n.endswith((".py", ".glsl", ".comp"))]
+    for path in sorted(files):
+        digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()[:16]
+
+
+def reusable_ladder_rows(all_json: Path, run: dict) -> dict:
+    """The rows of an earlier `bench ladder` (its all.json) that were measured in the same `run` -- size, frames,
+    link, traces and code -- by point name; none when the file is missing."""
+    import json
+    if not all_json.exists():
+        return {}
+    return {r["name"]: r for r in json.loads(all_json.read_text()) if r.get("run") == run}
+
+
 def _ladder_point(point, traces: list[str], size: tuple[int, int], frames: int, every: int,
                   latency: tuple[float, float]) -> list[dict]:
     """One point on every trace (run in a process of its own: the GL objects of a run are not all released)."""
@@ -444,7 +472,8 @@ def bench_ladder(traces: list[str] | None = None, size: tuple[int, int] = (640, 
     FLIP); writes `all.json`, `front.json` and `ladder.png` to `out`, and with `write` the ladder
     (:func:`quadcast.protocol.rate.ladder_points`: the Pareto front at each frame-rate floor) as the file the rate
     controller loads (`protocol/ladder.json`), with `command`. Points already in `out`/all.json with the same
-    settings and run are taken from there, not measured again. Returns one row per point."""
+    settings and run, measured by the same code (`code_fingerprint`), are taken from there, not measured again.
+    Returns one row per point."""
     import glob
     import json
     import multiprocessing
@@ -468,10 +497,8 @@ def bench_ladder(traces: list[str] | None = None, size: tuple[int, int] = (640, 
         placed.append(str(path))
     grid = points if points is not None else ladder_grid()
     run = {"size": list(size), "frames": frames, "every": every, "latency": list(latency),
-           "traces": [Path(p).stem for p in paths]}
-    known = {}
-    if (out / "all.json").exists():
-        known = {r["name"]: r for r in json.loads((out / "all.json").read_text()) if r.get("run") == run}
+           "traces": [Path(p).stem for p in paths], "code": code_fingerprint()}
+    known = reusable_ladder_rows(out / "all.json", run)
     rows, measured = [], []
     pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), max_tasks_per_child=1)
     for point in tqdm(grid, desc="ladder", unit="point", disable=quiet, file=sys.stderr):
