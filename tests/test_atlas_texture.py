@@ -38,7 +38,9 @@ def test_gpu_conversion_matches_the_cpu_one(ctx):
     cpu = picture.to_rgb()
     assert gpu.shape == (H, W, 3)
     diff = np.abs(gpu.astype(int) - cpu)
-    assert diff.mean() < 1.0 and diff.max() <= 6, (diff.mean(), diff.max())
+    # the GPU sharpens the chroma on its own grid, FFmpeg interpolates it bilinearly: on this picture of smooth
+    # colour they differ by 1.4 levels on average, at most 7 (a wrong matrix or range would be tens of levels off)
+    assert diff.mean() < 1.5 and diff.max() <= 8, (diff.mean(), diff.max())
     # and both are close to what was encoded (CRF 0: the conversions are the error)
     assert np.abs(gpu.astype(int) - _source()).mean() < 1.5
     atlas.release()
@@ -67,8 +69,8 @@ def test_bad_input_is_a_clear_error(ctx, bad):
 def test_the_mesh_draw_converts_the_planes_as_read_rgb_does(ctx):
     """A quad mesh drawn from its layer's own camera samples the atlas at texel centres: through the planes it
     shows exactly what read_rgb shows, as drawing from that RGBA picture does; from another pose the two differ by
-    half a level on average (measured 0.45, at most 4: the RGBA picture was rounded to 8 bits before filtering, and
-    chroma is interpolated once instead of twice)."""
+    about a level on average (measured 0.89, at most 6: the RGBA picture was rounded to 8 bits before filtering, and
+    the planes' chroma is sharpened on its own grid, the picture's on the luma's)."""
     picture = _picture()
     atlas = AtlasTexture(ctx)
     atlas.write(picture)
@@ -83,7 +85,7 @@ def test_the_mesh_draw_converts_the_planes_as_read_rgb_does(ctx):
     mesh.build([MeshLayer(quad, camera, (0, 0, W, H))], (W, H))
     view = MeshView(ctx, W, H)
     moved = Camera.perspective(Pose.look_at([0.1, 0.05, 0.0], [0.0, 0.0, -2.0]), W, H)
-    for eye, max_difference, mean_difference in ((camera, 0, 0.0), (moved, 6, 0.75)):
+    for eye, max_difference, mean_difference in ((camera, 0, 0.0), (moved, 6, 1.0)):
         images = []
         for source in (atlas, texture):
             view.render(mesh, eye, source)
