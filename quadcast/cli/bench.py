@@ -132,8 +132,8 @@ def bench_server(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
     the first (a warm-up), and, interleaved frame by frame on the same renderer, one full render of the same view:
     `ratio_to_render` is the server frame's wall time over that render's."""
     from quadcast.codec.encoder import VideoSettings
-    from quadcast.protocol.methods import method_video
     from quadcast.protocol.frame import FrameType, residual_to_reference_bytes
+    from quadcast.protocol.methods import method_video
     from quadcast.render.renderer import DeferredRenderer
     from quadcast.server.quasar import QuasarServer, QuasarSettings
 
