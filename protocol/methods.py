@@ -44,6 +44,7 @@ class MethodConfig:
     reference_every: int = 5
     layers: int = 4
     crf: float | None = None      # x264 CRF of the method's video; None: the method's own (DEFAULT_CRF)
+    chroma_qp_offset: int | None = None   # its x264 chroma-qp-offset; None: the method's own (DEFAULT_CHROMA_QP_OFFSET)
 
 
 DEFAULT_CRF = {"quasar": 19.0}
@@ -65,10 +66,11 @@ def method_crf(name: str, crf: float | None) -> float:
     return float(crf) if crf is not None else DEFAULT_CRF.get(name, 23.0)
 
 
-def method_video(name: str, crf: float | None) -> dict:
-    """The keyword arguments of a method's `quadcast.codec.encoder.VideoSettings`: its CRF (`method_crf`) and its
-    chroma quantizer offset (DEFAULT_CHROMA_QP_OFFSET)."""
-    return {"crf": method_crf(name, crf), "chroma_qp_offset": DEFAULT_CHROMA_QP_OFFSET.get(name, 0)}
+def method_video(name: str, crf: float | None, chroma_qp_offset: int | None = None) -> dict:
+    """The keyword arguments of a method's `quadcast.codec.encoder.VideoSettings`: `crf` and `chroma_qp_offset`
+    where given, else the method's own (`method_crf`, DEFAULT_CHROMA_QP_OFFSET)."""
+    offset = DEFAULT_CHROMA_QP_OFFSET.get(name, 0) if chroma_qp_offset is None else chroma_qp_offset
+    return {"crf": method_crf(name, crf), "chroma_qp_offset": offset}
 
 
 def check_method(name: str, option: str = "method") -> str:

@@ -17,7 +17,7 @@ from quadcast.protocol.methods import METHODS, MethodConfig, check_method, metho
 
 def make_server(name: str, renderer: DeferredRenderer, config: MethodConfig) -> MethodServer:
     check_method(name)
-    video = VideoSettings(**method_video(name, config.crf))
+    video = VideoSettings(**method_video(name, config.crf, config.chroma_qp_offset))
     if name == "quasar":
         from quadcast.server.quasar import QuasarServer, QuasarSettings
         return QuasarServer(renderer, QuasarSettings(width=config.width, height=config.height,

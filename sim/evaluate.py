@@ -71,6 +71,7 @@ class EvalSpec:
     predict: bool = True
     predictor: PredictorSettings | None = None    # None: quadcast.protocol.prediction.DEFAULT_PREDICTOR
     crf: float | None = None       # None: the method's own (quadcast.protocol.methods.DEFAULT_CRF)
+    chroma_qp_offset: int | None = None   # None: the method's own (quadcast.protocol.methods.DEFAULT_CHROMA_QP_OFFSET)
     reference_every: int = 5
     rate_trace: str | None = None  # a Mahimahi trace file or builtin:NAME for the downlink (instead of rate_mbit)
     adapt: bool = False            # the server's rate controller (quasar)
@@ -184,7 +185,7 @@ def run_eval(spec: EvalSpec, out: Path | None = None, quiet: bool = True) -> dic
     point = resolve_point(spec.point, ladder) if spec.point is not None else None
     renderer = DeferredRenderer(scene)
     cfg = MethodConfig(width=spec.width, height=spec.height, viewcell_radius=spec.viewcell_m,
-                       reference_every=spec.reference_every, crf=spec.crf)
+                       reference_every=spec.reference_every, crf=spec.crf, chroma_qp_offset=spec.chroma_qp_offset)
     server = make_server(spec.method, renderer, cfg)
     client = make_client(spec.method, cfg, renderer.ctx)
     predictor = spec.predictor or DEFAULT_PREDICTOR

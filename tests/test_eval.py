@@ -79,6 +79,8 @@ def test_bad_eval_input_is_named():
     for bad in (-1.0, float("nan"), 1e9):
         with pytest.raises(ValueError, match="--server-frame-ms"):
             run_eval(EvalSpec(method="atw", server_frame_ms=bad, **TINY))
+    with pytest.raises(ValueError, match=r"chroma_qp_offset must be an integer in \[-12, 12\]; got 20"):
+        run_eval(EvalSpec(method="atw", chroma_qp_offset=20, **TINY))
 
 
 def test_sweep_writes_a_comparison_table(tmp_path):

@@ -225,7 +225,8 @@ def _eval_spec(args):
                     queue_bytes=parse_bytes(args.queue) if args.queue else None, viewcell_m=args.viewcell,
                     width=w, height=h,
                     frames=args.frames, every=args.every, stereo=args.stereo, seed=args.seed,
-                    predict=not args.no_predict, crf=args.crf, rate_trace=args.rate_trace, adapt=args.adapt,
+                    predict=not args.no_predict, crf=args.crf, chroma_qp_offset=args.chroma_qp_offset,
+                    rate_trace=args.rate_trace, adapt=args.adapt,
                     target_mbps=args.target_mbps, point=args.point, ladder=args.ladder, gaze=args.gaze,
                     server_frame_ms=args.server_frame_ms)
 
@@ -425,6 +426,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-predict", action="store_true")
     p.add_argument("--crf", type=float, help="x264 constant rate factor (default: the method's own: quasar 19, "
                                              "the others 23)")
+    p.add_argument("--chroma-qp-offset", type=int, help="x264 chroma-qp-offset, -12..12 (default: the method's "
+                                                        "own: quasar -6, the others 0)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sweep", action="store_true",
                    help="methods x {20+-10, 50+-20 ms} x viewcell {0.25, 0.5, 1.0}: a comparison table and plot")
