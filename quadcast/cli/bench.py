@@ -127,19 +127,17 @@ def _full_render_ms(renderer, pose: Pose, w: int, h: int, t: float) -> float:
 
 
 def bench_server(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10, every: int = 5,
-                 viewcell: float = 0.5, crf: float | None = None, quiet: bool = False) -> list[dict]:
+                 viewcell: float = 0.5, quiet: bool = False) -> list[dict]:
     """QUASAR's server along each scene's benchmark trace: mean ms per stage and per frame over the frames after
     the first (a warm-up), and, interleaved frame by frame on the same renderer, one full render of the same view:
-    `ratio_to_render` is the server frame's wall time over that render's."""
-    from quadcast.codec.encoder import VideoSettings
+    `ratio_to_render` is the server frame's wall time over that render's; the server codes with quasar's own video
+    settings (`quadcast.protocol.methods.method_video`)."""
     from quadcast.protocol.frame import FrameType, residual_to_reference_bytes
-    from quadcast.protocol.methods import method_video
     from quadcast.render.renderer import DeferredRenderer
     from quadcast.server.quasar import QuasarServer, QuasarSettings
 
     if frames < 2:
         raise ValueError(f"bench server: --frames must be >= 2 (the first frame is a warm-up), got {frames}")
-    video = VideoSettings(**method_video("quasar", crf))
     rows = []
     print(f"{'scene':20s} {'size':>9s} " + " ".join(f"{s:>8s}" for s in SERVER_STAGES)
           + f" {'frame':>8s} {'render':>8s} {'ratio':>6s} {'Mbps@30':>8s} {'res/ref':>7s} {'quads':>7s}", flush=True)
@@ -147,7 +145,7 @@ def bench_server(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
         renderer = DeferredRenderer(scene)
         for w, h in sizes:
             server = QuasarServer(renderer, QuasarSettings(width=w, height=h, viewcell_radius=viewcell,
-                                                           reference_every=every, video=video))
+                                                           reference_every=every))
             stage_ms, frame_ms, render_ms, kinds, quads = [], [], [], [], []
             for t, pose in _progress(trace_poses(trace, frames), f"server {spec} {w}x{h}", quiet):
                 start = time.perf_counter()
@@ -173,7 +171,7 @@ def bench_server(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
     return rows
 
 
-def bench_client(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10, crf: float | None = None,
+def bench_client(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 10,
                  quiet: bool = False) -> list[dict]:
     """Client stage times (mean ms over the frames after the first: receive a frame and render it once) and cache
     size at each size, per scene; and, interleaved frame by frame on the same GL context, one full render of the
@@ -181,17 +179,14 @@ def bench_client(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
     from quadcast.client.quasar import QuasarClient
     from quadcast.render.renderer import DeferredRenderer
     from quadcast.server.quasar import QuasarServer, QuasarSettings
-    from quadcast.codec.encoder import VideoSettings
-    from quadcast.protocol.methods import method_video
 
     if frames < 2:
         raise ValueError(f"bench client: --frames must be >= 2 (the first frame is a warm-up), got {frames}")
-    video = VideoSettings(**method_video("quasar", crf))
     rows = []
     for spec, scene, trace in bench_scenes(scenes):
         renderer = DeferredRenderer(scene)
         for w, h in sizes:
-            server = QuasarServer(renderer, QuasarSettings(width=w, height=h, video=video))
+            server = QuasarServer(renderer, QuasarSettings(width=w, height=h))
             client = QuasarClient(w, h, ctx=renderer.ctx)
             per_frame, kinds, render_ms = [], [], []
             for t, pose in _progress(trace_poses(trace, frames), f"client {spec} {w}x{h}", quiet):
@@ -219,25 +214,22 @@ def bench_client(scenes: list[str], sizes: list[tuple[int, int]], frames: int = 
     return rows
 
 
-def bench_stereo(scenes: list[str], size: tuple[int, int] = (960, 540), frames: int = 6, crf: float | None = None,
+def bench_stereo(scenes: list[str], size: tuple[int, int] = (960, 540), frames: int = 6,
                  quiet: bool = False) -> list[dict]:
     """YORO quality and cost ratio per scene and mode (see the module docstring)."""
     from quadcast.client.quasar import QuasarClient
     from quadcast.client.stereo import StereoSynthesizer, benchmark_stereo
     from quadcast.render.renderer import DeferredRenderer
     from quadcast.server.quasar import QuasarServer, QuasarSettings
-    from quadcast.codec.encoder import VideoSettings
-    from quadcast.protocol.methods import method_video
     from quadcast.sim.metrics import compare
 
     if frames < 2:
         raise ValueError(f"bench stereo: --frames must be >= 2 (the first frame is a warm-up), got {frames}")
-    video = VideoSettings(**method_video("quasar", crf))
     w, h = size
     rows = []
     for spec, scene, trace in bench_scenes(scenes):
         renderer = DeferredRenderer(scene)
-        server = QuasarServer(renderer, QuasarSettings(width=w, height=h, video=video))
+        server = QuasarServer(renderer, QuasarSettings(width=w, height=h))
         client = QuasarClient(w, h, ctx=renderer.ctx)
         acc: dict[str, list[dict]] = {"yoro": [], "rerender": []}
         poses = trace_poses(trace, frames)
