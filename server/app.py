@@ -81,6 +81,7 @@ class ServerConfig:
     viewcell_m: float = 0.5
     reference_every: int = 5
     crf: float | None = None            # None: each method's own (quadcast.protocol.methods.DEFAULT_CRF)
+    chroma_qp_offset: int | None = None  # x264's; None: each method's own (methods.DEFAULT_CHROMA_QP_OFFSET)
     lead_ms: float = 40.0               # a frame's first display - render start, beyond the measured encode time
     predict: bool = True
     max_prediction_s: float = 0.5       # never extrapolate the pose further ahead (the predictor is kinematic)
@@ -139,6 +140,7 @@ class ServerConfig:
         if self.tls_key is not None and self.tls_cert is None:
             raise ValueError("--tls-key needs --tls-cert")
         self.limits()                    # ValueError naming a bad limit
+        self.check_video()
         ladder = load_ladder(self.ladder) if self.adapt or self.target_mbps is not None else None
         # ValueError / LadderError: bad ladder. Above it, what quasar sends without adaptation (RateConfig.own)
         self._rate = None if ladder is None else session_rate(ladder, self.target_mbps, self.crf, self.viewcell_m,
@@ -155,6 +157,17 @@ class ServerConfig:
         return ServerLimits(max_sessions=self.max_sessions, max_preauth=self.max_preauth, max_per_ip=self.max_per_ip,
                             handshake_timeout_s=self.handshake_timeout, idle_timeout_s=self.idle_timeout,
                             retry_after_s=self.retry_after)
+
+    def check_video(self) -> None:
+        """ValueError naming the option, unless every method served can code its video with ``crf`` and
+        ``chroma_qp_offset``: found here, not when each session's worker builds its encoder and fails."""
+        from quadcast.codec.encoder import VideoSettings
+        from quadcast.protocol.methods import method_video
+        for method in self.methods:
+            try:
+                VideoSettings(**method_video(method, self.crf, self.chroma_qp_offset))
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"--crf / --chroma-qp-offset ({method}): {exc}") from None
 
     def ssl_context(self) -> ssl.SSLContext | None:
         """The server's TLS context, or None without ``tls_cert``."""
@@ -205,6 +218,7 @@ class PipelineSpec:
     viewcell_m: float
     reference_every: int
     crf: float | None
+    chroma_qp_offset: int | None = None
 
 
 WARM_UP_FRAMES = 3
@@ -241,7 +255,8 @@ class SessionPipeline:
         self.spec = spec
         self.renderer = renderer or DeferredRenderer(scene if scene is not None else load_scene(spec.scene), ctx)
         config = MethodConfig(width=spec.width, height=spec.height, fovy_deg=spec.fovy_deg,
-                              viewcell_radius=spec.viewcell_m, reference_every=spec.reference_every, crf=spec.crf)
+                              viewcell_radius=spec.viewcell_m, reference_every=spec.reference_every, crf=spec.crf,
+                              chroma_qp_offset=spec.chroma_qp_offset)
         self.server = spec.make_server(spec.method, self.renderer, config)
 
     def encode(self, decision: EncodeFrame) -> tuple[bytes, bool]:
@@ -448,7 +463,7 @@ class Session:
         """The session's worker (a process unless ``config.worker == "thread"``) with its pipeline built."""
         cfg = self.cfg
         spec = PipelineSpec(self.server.make_server, cfg.scene, hello.method, hello.width, hello.height,
-                            hello.fovy_deg, cfg.viewcell_m, cfg.reference_every, cfg.crf)
+                            hello.fovy_deg, cfg.viewcell_m, cfg.reference_every, cfg.crf, cfg.chroma_qp_offset)
         self.worker = self.server.make_worker(f"session-{self.id}", spec)
         self.server.workers.add(self.worker)
         try:
@@ -672,7 +687,7 @@ class LiveServer:
         """The pipelines a spare worker warms up with: every method served, at :data:`WARM_UP_SIZE`."""
         cfg = self.config
         return tuple(PipelineSpec(self.make_server, cfg.scene, method, *WARM_UP_SIZE, 60.0, cfg.viewcell_m,
-                                  cfg.reference_every, cfg.crf) for method in cfg.methods)
+                                  cfg.reference_every, cfg.crf, cfg.chroma_qp_offset) for method in cfg.methods)
 
     @property
     def active(self) -> int:

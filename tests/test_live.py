@@ -7,6 +7,7 @@ the figures are those of a slow software-GL machine: the checks are about correc
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import re
 import socket
@@ -499,6 +500,27 @@ def test_unsent_is_checked(capsys):
         ServerConfig(unsent_bytes=-1)
     assert main(["server", "--port", "0", "--unsent", "lots"]) == 2
     assert "cannot parse size 'lots'" in capsys.readouterr().err
+
+
+def test_video_settings_are_checked_at_start_and_reach_the_sessions(capsys):
+    """A CRF or chroma offset x264 cannot take is refused when the server starts, naming the option, not when each
+    session's worker builds its encoder; a good one reaches every session's and warm-up's method config."""
+    from quadcast.cli import main
+    from quadcast.methods import make_server
+    from quadcast.server.app import LiveServer, ServerConfig, SessionPipeline
+    with pytest.raises(ValueError, match=r"--crf / --chroma-qp-offset \(quasar\): .*crf must be in \[0, 51\]"):
+        ServerConfig(crf=80.0)
+    with pytest.raises(ValueError, match=r"\(meshwarp\): .*chroma_qp_offset must be an integer in \[-12, 12\]"):
+        ServerConfig(methods=("meshwarp",), chroma_qp_offset=13)
+    assert main(["server", "--port", "0", "--chroma-qp-offset", "-20"]) == 2
+    assert "chroma_qp_offset must be an integer in [-12, 12]; got -20" in capsys.readouterr().err
+    server = LiveServer(ServerConfig(methods=("meshwarp", "quasar"), chroma_qp_offset=-3), make_server)
+    specs = server.warm_up_specs()
+    assert [s.chroma_qp_offset for s in specs] == [-3, -3]
+    configs = []
+    SessionPipeline(dataclasses.replace(specs[0], make_server=lambda name, renderer, config: configs.append(config)),
+                    renderer=object())
+    assert configs[0].chroma_qp_offset == -3 and configs[0].crf is None
 
 
 def test_bind_and_address_checks():

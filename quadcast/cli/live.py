@@ -69,7 +69,8 @@ def cmd_server(args) -> int:
     cfg = ServerConfig(scene=args.scene, methods=tuple(m.strip() for m in args.method.split(",") if m.strip()),
                        host=args.host, port=args.port, token=args.token or "", server_hz=args.hz,
                        max_width=max_w, max_height=max_h, viewcell_m=args.viewcell,
-                       reference_every=args.reference_every, crf=args.crf, lead_ms=args.lead_ms,
+                       reference_every=args.reference_every, crf=args.crf,
+                       chroma_qp_offset=args.chroma_qp_offset, lead_ms=args.lead_ms,
                        predict=not args.no_predict, max_sessions=args.max_sessions,
                        max_message_bytes=args.max_message_bytes, worker=args.worker,
                        spare_workers=args.spare_workers, warm_up=not args.no_warm_up,
@@ -248,6 +249,8 @@ def add_live_commands(sub) -> None:
     p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
     p.add_argument("--reference-every", type=int, default=5, help="a reference frame at least every K frames")
     p.add_argument("--crf", type=float, help="x264 constant rate factor (default: the method's own)")
+    p.add_argument("--chroma-qp-offset", type=int,
+                   help="x264 chroma-qp-offset, -12..12 (default: the method's own: quasar -6, the others 0)")
     p.add_argument("--lead-ms", type=float, default=40.0,
                    help="the time from a frame's send to its first display: each frame is rendered for the pose "
                         "predicted this far beyond the measured encode time, plus half the frame interval (the "
