@@ -85,6 +85,11 @@ class VideoSettings:
             Negative codes colour finer than brightness; 0 is x264's default.
             QUASAR's server takes -6 (quadcast.protocol.methods.
             DEFAULT_CHROMA_QP_OFFSET).
+        ipratio: x264's ``ipratio`` (1 .. 10), the ratio of the P frames'
+            quantizer step to the I frames': an IDR is coded 6 * log2(ipratio)
+            quantizer steps finer than the P frames around it (2.9 at x264's
+            default, 1.4; 6 at 2).  QUASAR's server takes 2.0 (quadcast.
+            protocol.methods.DEFAULT_IPRATIO).
     """
 
     crf: float | None = 23
@@ -94,6 +99,7 @@ class VideoSettings:
     threads: int = 0
     fps: float = 60.0
     chroma_qp_offset: int = 0
+    ipratio: float = 1.4
 
     def __post_init__(self) -> None:
         if self.bitrate_kbps is None:
@@ -119,6 +125,8 @@ class VideoSettings:
         if not (isinstance(self.chroma_qp_offset, int) and -12 <= self.chroma_qp_offset <= 12):
             raise ValueError(f"VideoSettings.chroma_qp_offset must be an integer in [-12, 12]; "
                              f"got {self.chroma_qp_offset!r}")
+        if not (isinstance(self.ipratio, (int, float)) and 1.0 <= self.ipratio <= 10.0):
+            raise ValueError(f"VideoSettings.ipratio must be a number in [1, 10]; got {self.ipratio!r}")
 
 
 @dataclass(frozen=True)
@@ -187,7 +195,7 @@ class AtlasEncoder:
         # (_CHROMA_INPUT) puts it and the clients' conversion reads it (render/atlas_colour.glsl); H.264's
         # default when unsaid is left-sited
         x264_params = [f"keyint={keyint}", "scenecut=0", "bframes=0", "repeat-headers=1", "chromaloc=1",
-                       f"chroma-qp-offset={s.chroma_qp_offset}"]
+                       f"chroma-qp-offset={s.chroma_qp_offset}", f"ipratio={float(s.ipratio):g}"]
         options = {"preset": s.preset, "tune": "zerolatency", "forced-idr": "1"}
         if s.bitrate_kbps is not None:
             kbps = int(s.bitrate_kbps)

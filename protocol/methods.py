@@ -47,18 +47,25 @@ class MethodConfig:
     chroma_qp_offset: int | None = None   # its x264 chroma-qp-offset; None: the method's own (DEFAULT_CHROMA_QP_OFFSET)
 
 
-DEFAULT_CRF = {"quasar": 19.0}
+DEFAULT_CRF = {"quasar": 20.0}
 """Each method's video quality when none is asked for (x264 CRF; 23 for the others). QUASAR's atlas carries the
 colour of every layer it sends, and its error floor at small pose errors is the video's: CRF 18 bought the
 courtyard's real-trace runs 9% lower FLIP for 15% more Mbps, well inside a quarter of QuadStream's rate (README,
 `quadcast bench quality`). Since the colour is coded finer (`VideoSettings.chroma_qp_offset`), CRF 19 sends about
-what CRF 18 sent, for lower FLIP (README, "Colour coded finer"). The baselines keep x264's default."""
+what CRF 18 sent, for lower FLIP (README, "Colour coded finer"); since its reference frames are coded finer
+(DEFAULT_IPRATIO), CRF 20 sends about what CRF 19 sent. The baselines keep x264's default."""
 
 DEFAULT_CHROMA_QP_OFFSET = {"quasar": -6}
 """Each method's x264 chroma-qp-offset (`VideoSettings.chroma_qp_offset`; 0, x264's default, for the others): QUASAR
 codes its atlas's colour 6 quantizer steps finer than its brightness. FLIP scores colour differences: in the
 benchmark's scenes bits spent on colour lower it more than the same bits spent through a lower CRF (README, "Colour
 coded finer", which also gives MeshWarp's figures with the same offset)."""
+
+DEFAULT_IPRATIO = {"quasar": 2.0}
+"""Each method's x264 ipratio (`VideoSettings.ipratio`; 1.4, x264's default, for the others): QUASAR codes its
+reference frames (IDRs) 6 quantizer steps finer than its residual frames, not 2.9. A reference frame's visible layer
+is the client's cache, drawn at every frame until the next reference frame, so bits spent on it buy more than the
+same bits spread over every frame through a lower CRF (README, "Reference frames coded finer")."""
 
 
 def method_crf(name: str, crf: float | None) -> float:
@@ -68,9 +75,9 @@ def method_crf(name: str, crf: float | None) -> float:
 
 def method_video(name: str, crf: float | None, chroma_qp_offset: int | None = None) -> dict:
     """The keyword arguments of a method's `quadcast.codec.encoder.VideoSettings`: `crf` and `chroma_qp_offset`
-    where given, else the method's own (`method_crf`, DEFAULT_CHROMA_QP_OFFSET)."""
+    where given, else the method's own (`method_crf`, DEFAULT_CHROMA_QP_OFFSET), and its ipratio (DEFAULT_IPRATIO)."""
     offset = DEFAULT_CHROMA_QP_OFFSET.get(name, 0) if chroma_qp_offset is None else chroma_qp_offset
-    return {"crf": method_crf(name, crf), "chroma_qp_offset": offset}
+    return {"crf": method_crf(name, crf), "chroma_qp_offset": offset, "ipratio": DEFAULT_IPRATIO.get(name, 1.4)}
 
 
 def check_method(name: str, option: str = "method") -> str:

@@ -275,9 +275,9 @@ def test_the_servers_own_settings_as_a_point():
     assert own.same_settings(OperatingPoint(crf=18.0, viewcell_m=0.25, reference_every=4))   # the other knobs' defaults
     assert (own.hidden_layers, own.quad_scale, own.foveated, own.mbps) == (3, 1.0, False, None)
     assert RateConfig(LADDER, own=own).points == LADDER.points + (own,)
-    assert own_point(None, 0.25, 4).crf == 19.0                                # quasar's default CRF
+    assert own_point(None, 0.25, 4).crf == 20.0                                # quasar's default CRF
     rc = session_rate(LADDER, 12.0, None, 0.5, 5)                              # what live and replayed sessions get
-    assert rc.target_mbps == 12.0 and rc.own == own_point(19.0, 0.5, 5, LADDER.fps)
+    assert rc.target_mbps == 12.0 and rc.own == own_point(20.0, 0.5, 5, LADDER.fps)
     with pytest.raises(ValueError, match="already has a point named 'p3'"):
         RateConfig(LADDER, own=replace(own, name="p3"))
     with pytest.raises(ValueError, match="RateConfig.own: expected an OperatingPoint"):

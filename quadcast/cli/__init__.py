@@ -373,7 +373,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
     p.add_argument("--every", type=int, default=5, help="a reference frame at least every K frames")
     p.add_argument("--layers", type=int, default=4, help="k: visible + k-1 hidden layers")
-    p.add_argument("--crf", type=float, help="x264 constant rate factor (default: quasar's own, 19)")
+    p.add_argument("--crf", type=float, help="x264 constant rate factor (default: quasar's own, 20)")
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_encode)
 
@@ -424,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--every", type=int, default=1, help="score every K-th display frame")
     p.add_argument("--stereo", action="store_true", help="also synthesize and score the second eye (YORO)")
     p.add_argument("--no-predict", action="store_true")
-    p.add_argument("--crf", type=float, help="x264 constant rate factor (default: the method's own: quasar 19, "
+    p.add_argument("--crf", type=float, help="x264 constant rate factor (default: the method's own: quasar 20, "
                                              "the others 23)")
     p.add_argument("--chroma-qp-offset", type=int, help="x264 chroma-qp-offset, -12..12 (default: the method's "
                                                         "own: quasar -6, the others 0)")
