@@ -410,10 +410,10 @@ class QuadMesh:
         """Until the next call, draw the cached layers (MeshLayer.cached) with the current view's colour as well:
         `camera` is the newest frame's own view, its colour at `atlas_rect` of the atlas `draw` is given. A cached
         surface was textured from an older view, often at a steeper angle, and both pictures carry their own coding
-        error: where the current view saw the surface the pixel is the mean of both colours. "Saw": the point lies
-        in that view's frustum and the colours agree (quad_mesh_refresh_fragment.glsl); a surface in front of it
-        there, of another colour, keeps the cached one. None: the cached colour alone (a reference frame's view is the
-        cache's own)."""
+        error: where the current view saw the surface the pixel is a weighted mean of both colours (the cached one,
+        from a finer-coded reference frame, weighs 0.7). "Saw": the point lies in that view's frustum and the colours
+        agree (quad_mesh_refresh_fragment.glsl); a surface in front of it there, of another colour, keeps the cached
+        one. None: the cached colour alone (a reference frame's view is the cache's own)."""
         self.current = None if camera is None else CurrentView(camera, tuple(atlas_rect))
 
     def draw(self, camera: Camera, atlas: AtlasTexture | moderngl.Texture | None,

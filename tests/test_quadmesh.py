@@ -291,12 +291,15 @@ def test_a_layer_samples_only_its_own_atlas_rect(ctx):
     assert image[drawn][:, 0].min() == 255
 
 
+CURRENT_WEIGHT = 0.3   # the current view's share in a cached layer's colour (render/quad_mesh_refresh_fragment.glsl)
+
+
 def test_cached_layer_takes_the_current_views_colour_where_that_view_saw_the_surface(ctx):
     """A cached layer (a grey wall 4 m in front of the reference view) seen after a residual frame whose own view
     (elsewhere) saw the wall in nearly the same colours, a gradient of its pixel coordinates, and a revealed green
-    quad 2 m in front of it hiding the wall's left part. Where the current view saw the wall the pixel is the mean of
-    both colours, sampled where the wall lies in the current view; where the occluder hid it (the colours disagree),
-    and with no current view, the cached colour alone."""
+    quad 2 m in front of it hiding the wall's left part. Where the current view saw the wall the pixel mixes in
+    CURRENT_WEIGHT of its colour, sampled where the wall lies in the current view; where the occluder hid it (the
+    colours disagree), and with no current view, the cached colour alone."""
     w, h = 64, 36
     reference = Camera.perspective(Pose([0.0, 0.0, 0.0]), w, h)
     current = Camera.perspective(Pose.look_at([0.3, 0.1, 0.0], [0.0, 0.0, -4.0]), w, h)
@@ -334,9 +337,9 @@ def test_cached_layer_takes_the_current_views_colour_where_that_view_saw_the_sur
     assert (hidden & inside).sum() > 100 and (seen & inside).sum() > 100
     np.testing.assert_array_equal(image[hidden & inside], [[120, 120, 120]] * int((hidden & inside).sum()))
     sel = seen & inside
-    np.testing.assert_allclose(image[sel][:, 0], 120 + 0.5 * (u[sel] - 0.5 - 32), atol=1.0)
-    np.testing.assert_allclose(image[sel][:, 1], 120 + 0.5 * 1.5 * (v[sel] - 0.5 - 18), atol=1.5)
-    np.testing.assert_allclose(image[sel][:, 2], 130, atol=1.0)
+    np.testing.assert_allclose(image[sel][:, 0], 120 + CURRENT_WEIGHT * (u[sel] - 0.5 - 32), atol=1.0)
+    np.testing.assert_allclose(image[sel][:, 1], 120 + CURRENT_WEIGHT * 1.5 * (v[sel] - 0.5 - 18), atol=1.5)
+    np.testing.assert_allclose(image[sel][:, 2], 120 + CURRENT_WEIGHT * 20, atol=1.0)
 
     mesh.set_current_view(None)
     view.render(mesh, eye, atlas)
