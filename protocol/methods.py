@@ -75,9 +75,13 @@ def method_crf(name: str, crf: float | None) -> float:
 
 def method_video(name: str, crf: float | None, chroma_qp_offset: int | None = None) -> dict:
     """The keyword arguments of a method's `quadcast.codec.encoder.VideoSettings`: `crf` and `chroma_qp_offset`
-    where given, else the method's own (`method_crf`, DEFAULT_CHROMA_QP_OFFSET), and its ipratio (DEFAULT_IPRATIO)."""
+    where given, else the method's own (`method_crf`, DEFAULT_CHROMA_QP_OFFSET), and its ipratio if DEFAULT_IPRATIO
+    names it."""
     offset = DEFAULT_CHROMA_QP_OFFSET.get(name, 0) if chroma_qp_offset is None else chroma_qp_offset
-    return {"crf": method_crf(name, crf), "chroma_qp_offset": offset, "ipratio": DEFAULT_IPRATIO.get(name, 1.4)}
+    video = {"crf": method_crf(name, crf), "chroma_qp_offset": offset}
+    if name in DEFAULT_IPRATIO:            # else VideoSettings' own, x264's default
+        video["ipratio"] = DEFAULT_IPRATIO[name]
+    return video
 
 
 def check_method(name: str, option: str = "method") -> str:

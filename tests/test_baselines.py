@@ -188,12 +188,13 @@ def test_bad_payloads_rejected_last_state_kept(atw, meshwarp):
 
 def test_each_method_codes_its_video_with_its_own_settings(courtyard_renderer):
     """quasar's atlas is coded at its own CRF with its colour 6 quantizer steps finer and its reference frames at
-    ipratio 2; the baselines keep x264's defaults (CRF 23, chroma offset 0, ipratio 1.4). A CRF or an offset asked for (`quadcast eval --crf`, `--chroma-qp-offset`)
-    replaces the method's own; one asked for alone leaves the other."""
+    ipratio 2; the baselines keep x264's defaults (CRF 23, chroma offset 0, ipratio 1.4). A CRF or an offset asked
+    for (`quadcast eval --crf`, `--chroma-qp-offset`) replaces the method's own; one asked for alone leaves the
+    other."""
     from quadcast.methods import make_server
     from quadcast.protocol.methods import MethodConfig
-    for name, crf, offset, ipratio in (("quasar", 20.0, -6, 2.0), ("quadstream", 23.0, 0, 1.4), ("meshwarp", 23.0, 0, 1.4),
-                                       ("atw", 23.0, 0, 1.4)):
+    for name, crf, offset, ipratio in (("quasar", 20.0, -6, 2.0), ("quadstream", 23.0, 0, 1.4),
+                                       ("meshwarp", 23.0, 0, 1.4), ("atw", 23.0, 0, 1.4)):
         for asked_crf, asked_offset in ((None, None), (30.0, None), (None, -3), (30.0, 2)):
             config = MethodConfig(width=W, height=H, crf=asked_crf, chroma_qp_offset=asked_offset)
             server = make_server(name, courtyard_renderer, config)
