@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["METHODS", "STEREO_METHODS", "DEFAULT_CRF", "DEFAULT_CHROMA_QP_OFFSET", "MethodConfig", "check_method",
-           "method_crf", "method_video", "MAX_ATLAS_VIEWS", "meshwarp_render_size"]
+__all__ = ["METHODS", "STEREO_METHODS", "DEFAULT_CRF", "DEFAULT_CHROMA_QP_OFFSET", "DEFAULT_IPRATIO", "MethodConfig",
+           "check_method", "method_crf", "method_video", "MAX_ATLAS_VIEWS", "meshwarp_render_size"]
 
 METHODS = ("quasar", "quadstream", "meshwarp", "meshwarp120", "atw")
 """Every method: QUASAR, the QuadStream-like baseline, MeshWarp (60° or, as meshwarp120, 120° at twice the

@@ -521,6 +521,10 @@ def test_video_settings_are_checked_at_start_and_reach_the_sessions(capsys):
     SessionPipeline(dataclasses.replace(specs[0], make_server=lambda name, renderer, config: configs.append(config)),
                     renderer=object())
     assert configs[0].chroma_qp_offset == -3 and configs[0].crf is None
+    from quadcast.cli.live import video_option_help           # the options' help reads the defaults it names
+    from quadcast.protocol.methods import DEFAULT_CHROMA_QP_OFFSET, DEFAULT_CRF
+    assert f"quasar {DEFAULT_CRF['quasar']:g}, quadstream/meshwarp/meshwarp120/atw 23)" in video_option_help("crf")
+    assert f"quasar {DEFAULT_CHROMA_QP_OFFSET['quasar']}, " in video_option_help("chroma_qp_offset")
 
 
 def test_bind_and_address_checks():

@@ -352,6 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="quadcast", description=__doc__.split("\n\n")[0])
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     sub = parser.add_subparsers(dest="command", required=True)
+    from quadcast.cli.live import add_live_commands, video_option_help
+    from quadcast.protocol.methods import method_crf
 
     p = sub.add_parser("render", help="render ground-truth frames along a camera trace")
     p.add_argument("--scene", default="builtin:courtyard")
@@ -373,7 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
     p.add_argument("--every", type=int, default=5, help="a reference frame at least every K frames")
     p.add_argument("--layers", type=int, default=4, help="k: visible + k-1 hidden layers")
-    p.add_argument("--crf", type=float, help="x264 constant rate factor (default: quasar's own, 20)")
+    p.add_argument("--crf", type=float,
+                   help=f"x264 constant rate factor (default: quasar's own, {method_crf('quasar', None):g})")
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_encode)
 
@@ -424,10 +427,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--every", type=int, default=1, help="score every K-th display frame")
     p.add_argument("--stereo", action="store_true", help="also synthesize and score the second eye (YORO)")
     p.add_argument("--no-predict", action="store_true")
-    p.add_argument("--crf", type=float, help="x264 constant rate factor (default: the method's own: quasar 20, "
-                                             "the others 23)")
-    p.add_argument("--chroma-qp-offset", type=int, help="x264 chroma-qp-offset, -12..12 (default: the method's "
-                                                        "own: quasar -6, the others 0)")
+    p.add_argument("--crf", type=float, help=video_option_help("crf"))
+    p.add_argument("--chroma-qp-offset", type=int, help=video_option_help("chroma_qp_offset"))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sweep", action="store_true",
                    help="methods x {20+-10, 50+-20 ms} x viewcell {0.25, 0.5, 1.0}: a comparison table and plot")
@@ -487,7 +488,6 @@ def build_parser() -> argparse.ArgumentParser:
                         "peers; the virtual-time replays are the same either way)")
     p.set_defaults(func=cmd_demo)
 
-    from quadcast.cli.live import add_live_commands
     add_live_commands(sub)
     return parser
 

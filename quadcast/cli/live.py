@@ -223,6 +223,18 @@ def cmd_link(args) -> int:
 
 # ---------------------------------------------------------------------------------------------- parsers
 
+def video_option_help(key: str) -> str:
+    """The help of `--crf` (key "crf") or `--chroma-qp-offset` ("chroma_qp_offset"), as `quadcast server` and
+    `quadcast eval` take them, with each method's default read from `quadcast.protocol.methods.method_video`."""
+    from quadcast.protocol.methods import METHODS, method_video
+    what = {"crf": "x264 constant rate factor", "chroma_qp_offset": "x264 chroma-qp-offset, -12..12"}[key]
+    methods_by_value: dict = {}
+    for method in METHODS:
+        methods_by_value.setdefault(method_video(method, None)[key], []).append(method)
+    defaults = ", ".join(f"{'/'.join(names)} {value:g}" for value, names in methods_by_value.items())
+    return f"{what} (default: each method's own: {defaults})"
+
+
 def add_live_commands(sub) -> None:
     """Add ``server``, ``client`` and ``link`` to ``quadcast``'s subparsers."""
     from quadcast.cli import add_trace_placement
@@ -248,9 +260,8 @@ def add_live_commands(sub) -> None:
     p.add_argument("--hz", type=float, default=30.0, help="frame rate cap per session")
     p.add_argument("--viewcell", type=float, default=0.5, help="view-sphere radius, metres")
     p.add_argument("--reference-every", type=int, default=5, help="a reference frame at least every K frames")
-    p.add_argument("--crf", type=float, help="x264 constant rate factor (default: the method's own)")
-    p.add_argument("--chroma-qp-offset", type=int,
-                   help="x264 chroma-qp-offset, -12..12 (default: the method's own: quasar -6, the others 0)")
+    p.add_argument("--crf", type=float, help=video_option_help("crf"))
+    p.add_argument("--chroma-qp-offset", type=int, help=video_option_help("chroma_qp_offset"))
     p.add_argument("--lead-ms", type=float, default=40.0,
                    help="the time from a frame's send to its first display: each frame is rendered for the pose "
                         "predicted this far beyond the measured encode time, plus half the frame interval (the "
